@@ -1,0 +1,1 @@
+"""The `d3lvo` command line (typer + rich)."""

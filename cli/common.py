@@ -1,0 +1,33 @@
+"""What every command shares: one console, and bad input turned into one clear line and exit 1."""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable, TypeVar
+
+import typer
+from rich.console import Console
+
+from d3lvo_deploy.errors import D3LVOInputError
+
+console = Console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
+out = Console()
+
+F = TypeVar("F", bound=Callable)
+
+
+def friendly_errors(fn: F) -> F:
+    """Bad input -> `error: <file>: <problem>` and exit code 1, never a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except D3LVOInputError as e:
+            console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            console.print("[yellow]interrupted[/]")
+            raise typer.Exit(130) from None
+
+    return wrapper  # type: ignore[return-value]

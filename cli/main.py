@@ -1,0 +1,40 @@
+"""Entry point of the `d3lvo` command."""
+
+from __future__ import annotations
+
+import typer
+
+from .eval_cmd import eval_command
+
+app = typer.Typer(
+    name="d3lvo",
+    help="D3LVO LiDAR-visual odometry: synthetic KITTI data, evaluation, export and ONNX runtime.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _version(value: bool) -> None:
+    if value:
+        from d3lvo_deploy import __version__
+
+        typer.echo(f"d3lvo-deploy {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                      help="Print the version and exit.")) -> None:
+    """D3LVO LiDAR-visual odometry toolkit."""
+
+
+app.command("eval")(eval_command)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

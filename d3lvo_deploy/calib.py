@@ -1,0 +1,105 @@
+"""KITTI calibration files and the camera conventions the toolkit relies on.
+
+Frames: `velo` (LiDAR), `cam0` (rectified left grey camera: KITTI ground truth lives here) and
+`cam2` (rectified left colour camera, `image_2`, what the network sees). Rectified cameras share
+one orientation, so cam0 -> cam2 is a pure translation b = inv(K2) @ P2[:, 3].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import D3LVOInputError
+from .geometry import make_se3, se3_inv
+
+
+@dataclass(frozen=True)
+class Calib:
+    P2: np.ndarray  # (3,4) projection of rectified cam0 coordinates into image_2
+    Tr: np.ndarray  # (4,4) velodyne -> rectified cam0
+    P0: np.ndarray | None = None
+
+    @property
+    def K2(self) -> np.ndarray:
+        return self.P2[:, :3].copy()
+
+    @property
+    def T_cam2_cam0(self) -> np.ndarray:
+        """x_cam2 = x_cam0 + b: the image_2 camera centre is -b in cam0 coordinates."""
+        b = np.linalg.solve(self.P2[:, :3], self.P2[:, 3])
+        return make_se3(np.eye(3), b)
+
+    @property
+    def T_cam0_cam2(self) -> np.ndarray:
+        return se3_inv(self.T_cam2_cam0)
+
+    @property
+    def T_cam2_velo(self) -> np.ndarray:
+        return self.T_cam2_cam0 @ self.Tr
+
+    @property
+    def P_velo_to_image2(self) -> np.ndarray:
+        """(3,4) matrix taking homogeneous LiDAR points straight to image_2 pixels."""
+        return self.P2 @ self.Tr
+
+    def to_text(self) -> str:
+        """KITTI odometry calib.txt (P0..P3 written as P2 where the others are unknown)."""
+        P0 = self.P0 if self.P0 is not None else np.hstack([self.K2, np.zeros((3, 1))])
+        rows = [("P0", P0), ("P1", P0), ("P2", self.P2), ("P3", self.P2), ("Tr", self.Tr[:3])]
+        return "".join(f"{k}: " + " ".join(f"{v:.12e}" for v in np.asarray(m).reshape(-1)) + "\n" for k, m in rows)
+
+
+def _as_4x4(path: Path, key: str, vals: list[float]) -> np.ndarray:
+    if len(vals) == 12:
+        return np.vstack([np.asarray(vals).reshape(3, 4), [0, 0, 0, 1]])
+    if len(vals) == 16:
+        T = np.asarray(vals).reshape(4, 4)
+        if not np.allclose(T[3], [0, 0, 0, 1]):
+            raise D3LVOInputError(path, f"{key}: last row of the 4x4 matrix must be 0 0 0 1")
+        return T
+    raise D3LVOInputError(path, f"{key} has {len(vals)} numbers, expected 12 (3x4) or 16 (4x4)")
+
+
+def parse_calib(path: str | Path) -> Calib:
+    """Read odometry (`P0..P3`, `Tr`) or object-benchmark (`R0_rect`, `Tr_velo_to_cam`) calib files."""
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, "calibration file not found")
+    entries: dict[str, list[float]] = {}
+    for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        if ":" not in line:
+            raise D3LVOInputError(path, f"line {lineno} has no 'KEY:' prefix: {line[:60]!r}")
+        key, rest = line.split(":", 1)
+        try:
+            entries[key.strip()] = [float(v) for v in rest.split()]
+        except ValueError:
+            raise D3LVOInputError(path, f"line {lineno} ({key.strip()}) is not numeric") from None
+
+    if "P2" not in entries:
+        raise D3LVOInputError(path, "no P2 (image_2 projection) entry")
+    if len(entries["P2"]) != 12:
+        raise D3LVOInputError(path, f"P2 has {len(entries['P2'])} numbers, expected 12")
+    P2 = np.asarray(entries["P2"]).reshape(3, 4)
+    if abs(np.linalg.det(P2[:, :3])) < 1e-9:
+        raise D3LVOInputError(path, "P2's left 3x3 block is singular")
+
+    tr_key = next((k for k in ("Tr", "Tr_velo_to_cam", "Tr_velo_cam") if k in entries), None)
+    if tr_key is None:
+        raise D3LVOInputError(path, "no LiDAR extrinsic (Tr, Tr_velo_to_cam or Tr_velo_cam)")
+    Tr = _as_4x4(path, tr_key, entries[tr_key])
+    rect_key = next((k for k in ("R0_rect", "R_rect", "R0") if k in entries), None)
+    if rect_key is not None and tr_key != "Tr":
+        R0 = np.asarray(entries[rect_key])
+        if R0.size != 9:
+            raise D3LVOInputError(path, f"{rect_key} has {R0.size} numbers, expected 9")
+        Tr = make_se3(R0.reshape(3, 3), np.zeros(3)) @ Tr
+    R = Tr[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+        raise D3LVOInputError(path, f"{tr_key}'s rotation block is not orthonormal")
+    P0 = np.asarray(entries["P0"]).reshape(3, 4) if len(entries.get("P0", [])) == 12 else None
+    return Calib(P2=P2, Tr=Tr, P0=P0)

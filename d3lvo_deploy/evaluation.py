@@ -1,0 +1,182 @@
+"""Evaluate estimated trajectories against ground truth, one sequence or many.
+
+Both trajectories are first expressed relative to their first common frame (so a run starting at
+identity and a GT file starting elsewhere compare), then the estimate is aligned as asked:
+`none`, `6dof` (SE(3) Umeyama), `7dof` (Sim(3) Umeyama) or `scale` (scale only, for monocular
+methods). The aligned estimate feeds every metric, as in kitti-odom-eval.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import metrics
+from .errors import D3LVOInputError
+from .geometry import apply_sim3, relative, umeyama
+from .poses import Trajectory, read_poses
+
+ALIGN_MODES = ("none", "6dof", "7dof", "scale")
+
+
+@dataclass
+class SequenceResult:
+    name: str
+    frames: int
+    path_length_m: float
+    t_rel: float | None  # %
+    r_rel: float | None  # deg / 100 m
+    ate: float  # m, RMSE after alignment
+    rpe_t: float  # m, mean frame-to-frame
+    rpe_r: float  # deg, mean frame-to-frame
+    segments: int
+    scale: float = 1.0
+    notes: list[str] = field(default_factory=list)
+    segment_rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)), repr=False)
+    gt_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)), repr=False)
+    est_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)), repr=False)  # aligned
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k in ("segment_rows", "gt_poses", "est_poses"):
+            d.pop(k)
+        return d
+
+
+@dataclass
+class EvalReport:
+    sequences: list[SequenceResult]
+    align: str
+
+    @property
+    def overall(self) -> dict:
+        """The devkit's aggregate: segments of all sequences pooled, so longer sequences weigh more."""
+        rows = np.concatenate([s.segment_rows for s in self.sequences]) if self.sequences else np.zeros((0, 5))
+        t_rel, r_rel = metrics.rel_errors(rows)
+        frames = np.array([s.frames for s in self.sequences], dtype=np.float64)
+        return {
+            "t_rel": None if math.isnan(t_rel) else t_rel,
+            "r_rel": None if math.isnan(r_rel) else r_rel,
+            "ate": float(np.average([s.ate for s in self.sequences], weights=frames)),
+            "rpe_t": float(np.average([s.rpe_t for s in self.sequences], weights=frames)),
+            "rpe_r": float(np.average([s.rpe_r for s in self.sequences], weights=frames)),
+            "segments": int(len(rows)),
+            "frames": int(frames.sum()),
+        }
+
+    def to_dict(self) -> dict:
+        """One sequence: its numbers at top level; several: `sequences` plus the pooled mean on top."""
+        if len(self.sequences) == 1:
+            return {**self.sequences[0].to_dict(), "align": self.align}
+        return {**self.overall, "align": self.align, "sequences": [s.to_dict() for s in self.sequences]}
+
+
+def align_estimate(gt: np.ndarray, est: np.ndarray, mode: str) -> tuple[np.ndarray, float]:
+    """Return the aligned estimate and the scale that was applied."""
+    if mode == "none":
+        return est, 1.0
+    if mode == "scale":
+        g, e = gt[:, :3, 3], est[:, :3, 3]
+        den = float((e * e).sum())
+        s = float((g * e).sum()) / den if den > 0 else 1.0
+        out = est.copy()
+        out[:, :3, 3] *= s
+        return out, s
+    if mode in ("6dof", "7dof"):
+        R, t, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=mode == "7dof")
+        return apply_sim3(est, R, t, s), s
+    raise ValueError(f"align must be one of {ALIGN_MODES}, not {mode!r}")
+
+
+def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Pair estimate poses with GT frames; returns (est frame index array, valid mask over GT, notes)."""
+    notes: list[str] = []
+    ids = est.frame_ids
+    if ids.max(initial=-1) >= len(gt) or ids.min(initial=0) < 0:
+        raise D3LVOInputError(est_name, f"frame index {int(ids.max())} is outside the {len(gt)} GT frames")
+    if len(est) > len(gt):
+        raise D3LVOInputError(est_name, f"{len(est)} poses but the ground truth has only {len(gt)}")
+    if len(est) < len(gt) and np.array_equal(ids, np.arange(len(est))):
+        notes.append(f"estimate has {len(est)} of {len(gt)} poses: evaluated on the first {len(est)} frames")
+    elif len(est) < len(gt):
+        notes.append(f"estimate skips {len(gt) - len(est)} frames: segments touching them are left out")
+    valid = np.zeros(len(gt), dtype=bool)
+    valid[ids] = True
+    return ids, valid, notes
+
+
+def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "",
+             est_name: str | Path = "estimate") -> SequenceResult:
+    if len(est) < 2 or len(gt) < 2:
+        raise D3LVOInputError(est_name if len(est) < 2 else None, "need at least 2 poses to evaluate")
+    ids, valid, notes = match_frames(gt, est, est_name)
+    last = int(ids[-1])
+    gt_poses = gt.poses[: last + 1]
+    valid = valid[: last + 1]
+    first = int(ids[0])
+    gt_rel = relative(gt_poses[first], gt_poses)
+    est_rel = relative(est.poses[0], est.poses)
+    aligned, scale = align_estimate(gt_rel[ids], est_rel, align)
+
+    full = np.tile(np.eye(4), (len(gt_rel), 1, 1))
+    full[ids] = aligned
+    rows = metrics.segment_errors(gt_rel, full, valid)
+    path_len = float(metrics.trajectory_distances(gt_rel)[-1])
+    t_rel, r_rel = metrics.rel_errors(rows)
+    if len(rows) == 0:
+        notes.append(
+            f"path is {path_len:.1f} m, shorter than the devkit's shortest 100 m segment: t_rel/r_rel unavailable"
+            if path_len <= metrics.SEGMENT_LENGTHS[0] else "no complete 100 m segment: t_rel/r_rel unavailable"
+        )
+    consecutive = np.nonzero(np.diff(ids) == 1)[0]  # RPE only between frames that are really adjacent
+    gt_m = gt_rel[ids]
+    rpe_t, rpe_r = metrics.rpe_from_motions(
+        relative(gt_m[consecutive], gt_m[consecutive + 1]), relative(aligned[consecutive], aligned[consecutive + 1])
+    )
+    return SequenceResult(
+        name=name,
+        frames=len(est),
+        path_length_m=path_len,
+        t_rel=None if math.isnan(t_rel) else t_rel,
+        r_rel=None if math.isnan(r_rel) else r_rel,
+        ate=metrics.ate_rmse(gt_m, aligned),
+        rpe_t=rpe_t,
+        rpe_r=rpe_r,
+        segments=len(rows),
+        scale=scale,
+        notes=notes,
+        segment_rows=rows,
+        gt_poses=gt_m,
+        est_poses=aligned,
+    )
+
+
+def evaluate_files(pairs: list[tuple[Path, Path]], align: str = "none") -> EvalReport:
+    """Evaluate (gt_file, est_file) pairs; sequence names are the estimate file stems."""
+    results = []
+    for gt_path, est_path in pairs:
+        gt = read_poses(gt_path)
+        est = read_poses(est_path)
+        results.append(evaluate(gt, est, align=align, name=Path(est_path).stem, est_name=est_path))
+    return EvalReport(results, align)
+
+
+def pair_result_files(gt: Path, est: Path) -> list[tuple[Path, Path]]:
+    """Files pair with files; folders pair by file name (KITTI `NN.txt`), as the devkit does."""
+    if gt.is_dir() != est.is_dir():
+        raise D3LVOInputError(est, "--gt and --est must both be files or both be folders")
+    if not gt.is_dir():
+        return [(gt, est)]
+    est_files = sorted(est.glob("*.txt"))
+    if not est_files:
+        raise D3LVOInputError(est, "folder holds no .txt trajectories")
+    pairs = []
+    for f in est_files:
+        g = gt / f.name
+        if not g.is_file():
+            raise D3LVOInputError(g, f"no ground truth for {f.name}")
+        pairs.append((g, f))
+    return pairs

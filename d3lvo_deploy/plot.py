@@ -1,0 +1,35 @@
+"""Top-view (x-z) trajectory plots; Agg backend so it works on headless vehicles and CI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def plot_trajectories(out: str | Path, trajectories: dict[str, np.ndarray], title: str = "") -> Path:
+    """Draw each (N,4,4) trajectory in cam0's x-z plane (KITTI's bird's-eye view) and save a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=110)
+    for label, poses in trajectories.items():
+        p = np.asarray(poses)[:, :3, 3]
+        ax.plot(p[:, 0], p[:, 2], label=label, lw=1.5, ls="--" if label.lower().startswith("gt") else "-")
+    first = np.asarray(next(iter(trajectories.values())))[0, :3, 3]
+    ax.plot(first[0], first[2], "ko", ms=4, label="start")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("z [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out

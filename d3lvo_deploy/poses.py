@@ -1,0 +1,111 @@
+"""Trajectory files: KITTI (12 numbers), indexed KITTI (frame index + 12) and TUM (t x y z qx qy qz qw)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import D3LVOInputError
+from .geometry import make_se3, quat_to_rot, rot_to_quat
+
+
+@dataclass
+class Trajectory:
+    """Absolute poses (N,4,4) with the frame index of each (skipped frames allowed) and optional stamps."""
+
+    poses: np.ndarray
+    frame_ids: np.ndarray
+    timestamps: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @classmethod
+    def from_poses(cls, poses: np.ndarray, timestamps: np.ndarray | None = None) -> "Trajectory":
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        return cls(poses, np.arange(len(poses)), timestamps)
+
+
+def _parse_rows(path: Path) -> list[list[float]]:
+    rows: list[list[float]] = []
+    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            try:
+                rows.append([float(v) for v in s.replace(",", " ").split()])
+            except ValueError:
+                raise D3LVOInputError(path, f"line {lineno} is not a row of numbers: {s[:60]!r}") from None
+    return rows
+
+
+def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
+    """Read a trajectory; `fmt` is auto|kitti|kitti_indexed|tum. Auto decides by the column count."""
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, "pose file not found")
+    rows = _parse_rows(path)
+    if not rows:
+        raise D3LVOInputError(path, "pose file is empty")
+    widths = {len(r) for r in rows}
+    if len(widths) != 1:
+        raise D3LVOInputError(path, f"rows have different column counts {sorted(widths)}")
+    ncol = widths.pop()
+    if fmt == "auto":
+        fmt = {12: "kitti", 13: "kitti_indexed", 8: "tum"}.get(ncol, "")
+        if not fmt:
+            raise D3LVOInputError(
+                path, f"{ncol} columns per line: expected 12 (KITTI), 13 (index + KITTI) or 8 (TUM)"
+            )
+    expected = {"kitti": 12, "kitti_indexed": 13, "tum": 8}
+    if fmt not in expected:
+        raise ValueError(f"unknown pose format {fmt!r}")
+    if ncol != expected[fmt]:
+        raise D3LVOInputError(path, f"{ncol} columns per line, but {fmt} needs {expected[fmt]}")
+    a = np.asarray(rows, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        bad = int(np.argmax(~np.all(np.isfinite(a), axis=1)))
+        raise D3LVOInputError(path, f"pose {bad} contains NaN or infinity")
+    stamps = None
+    if fmt == "tum":
+        stamps = a[:, 0]
+        poses = make_se3(quat_to_rot(a[:, 4:8], scalar_first=False), a[:, 1:4])
+        ids = np.arange(len(a))
+    else:
+        if fmt == "kitti_indexed":
+            ids = a[:, 0].astype(np.int64)
+            if np.any(ids != a[:, 0]) or np.any(np.diff(ids) <= 0):
+                raise D3LVOInputError(path, "frame indices in column 1 must be increasing integers")
+            a = a[:, 1:]
+        else:
+            ids = np.arange(len(a))
+        poses = np.tile(np.eye(4), (len(a), 1, 1))
+        poses[:, :3, :] = a.reshape(-1, 3, 4)
+    return Trajectory(poses, ids, stamps)
+
+
+def format_kitti_line(T: np.ndarray) -> str:
+    return " ".join(f"{v:.9e}" for v in np.asarray(T)[:3, :4].reshape(-1))
+
+
+def format_tum_line(T: np.ndarray, stamp: float) -> str:
+    q = rot_to_quat(np.asarray(T)[:3, :3], scalar_first=False)
+    t = np.asarray(T)[:3, 3]
+    return f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in (*t, *q))
+
+
+def write_poses(path: str | Path, poses: np.ndarray, fmt: str = "kitti", timestamps: np.ndarray | None = None) -> None:
+    """Write (N,4,4) poses as KITTI or TUM (TUM stamps default to 10 Hz)."""
+    path = Path(path)
+    poses = np.asarray(poses).reshape(-1, 4, 4)
+    if fmt == "kitti":
+        lines = [format_kitti_line(T) for T in poses]
+    elif fmt == "tum":
+        stamps = np.arange(len(poses)) * 0.1 if timestamps is None else np.asarray(timestamps)
+        lines = [format_tum_line(T, s) for T, s in zip(poses, stamps)]
+    else:
+        raise ValueError(f"unknown pose format {fmt!r}")
+    path.write_text("\n".join(lines) + ("\n" if lines else ""))

@@ -1,0 +1,102 @@
+"""LiDAR -> sparse depth in image_2 at the network's resolution.
+
+KITTI images are ~1241x376 and vary by sequence; the network takes a bottom-centre crop
+(1216x352 in the paper, the KITTI depth-completion convention: the sky rows at the top carry no
+LiDAR), optionally resized by `scale` for reduced-resolution models. The same `View` maps the
+image and the intrinsics, so depth and pixels stay registered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class View:
+    """A bottom-centre crop of the source image, then a resize by `scale`."""
+
+    src_width: int
+    src_height: int
+    top: int
+    left: int
+    crop_width: int
+    crop_height: int
+    scale: float = 1.0
+
+    @property
+    def width(self) -> int:
+        return int(round(self.crop_width * self.scale))
+
+    @property
+    def height(self) -> int:
+        return int(round(self.crop_height * self.scale))
+
+    @property
+    def affine(self) -> np.ndarray:
+        """3x3 map from source pixel coordinates to network pixel coordinates.
+
+        Pixel centres sit at integers, so a resize maps x -> (x + 0.5) * s - 0.5, as cv2.resize does.
+        """
+        sx = self.width / self.crop_width
+        sy = self.height / self.crop_height
+        return np.array([
+            [sx, 0, (0.5 - self.left) * sx - 0.5],
+            [0, sy, (0.5 - self.top) * sy - 0.5],
+            [0, 0, 1.0],
+        ])
+
+    def project_matrix(self, P: np.ndarray) -> np.ndarray:
+        """Adjust a 3x4 projection (or 3x3 intrinsics) for the crop and scale."""
+        return self.affine @ np.asarray(P, dtype=np.float64)
+
+    def apply_image(self, image: np.ndarray) -> np.ndarray:
+        crop = image[self.top : self.top + self.crop_height, self.left : self.left + self.crop_width]
+        if self.scale == 1.0:
+            return np.ascontiguousarray(crop)
+        return cv2.resize(crop, (self.width, self.height), interpolation=cv2.INTER_AREA)
+
+
+def bottom_center_view(src_width: int, src_height: int, crop_width: int = 1216, crop_height: int = 352,
+                       scale: float = 1.0) -> View:
+    """The paper's crop; raises if the image is smaller than the crop."""
+    if src_width < crop_width or src_height < crop_height:
+        raise ValueError(f"image {src_width}x{src_height} is smaller than the {crop_width}x{crop_height} crop")
+    return View(src_width, src_height, src_height - crop_height, (src_width - crop_width) // 2,
+                crop_width, crop_height, scale)
+
+
+def project_points(points: np.ndarray, P: np.ndarray, width: int, height: int,
+                   min_depth: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project (N,>=3) LiDAR points with a 3x4 P; returns in-image pixel cols, rows and depths.
+
+    Pixel (r, c) covers [c-0.5, c+0.5) x [r-0.5, r+0.5): KITTI puts pixel centres at integers.
+    """
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    P = np.asarray(P, dtype=np.float64)
+    uvw = xyz @ P[:, :3].T + P[:, 3]
+    z = uvw[:, 2]
+    front = z > min_depth
+    uvw, z = uvw[front], z[front]
+    c = np.floor(uvw[:, 0] / z + 0.5).astype(np.int64)
+    r = np.floor(uvw[:, 1] / z + 0.5).astype(np.int64)
+    inside = (c >= 0) & (c < width) & (r >= 0) & (r < height)
+    return c[inside], r[inside], z[inside]
+
+
+def sparse_depth(points: np.ndarray, P: np.ndarray, width: int, height: int,
+                 min_depth: float = 0.1) -> np.ndarray:
+    """(H,W) float32 depth in metres, 0 where no point landed; the nearest point wins a pixel."""
+    c, r, z = project_points(points, P, width, height, min_depth)
+    depth = np.zeros((height, width), dtype=np.float32)
+    if len(z) == 0:
+        return depth
+    lin = r * width + c
+    order = np.lexsort((z, lin))  # by pixel, then nearest first
+    lin, z = lin[order], z[order]
+    first = np.ones(len(lin), dtype=bool)
+    first[1:] = lin[1:] != lin[:-1]
+    depth.reshape(-1)[lin[first]] = z[first]
+    return depth
