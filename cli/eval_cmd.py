@@ -61,6 +61,6 @@ def eval_command(
                 raise D3LVOInputError(target, f"cannot write the plot ({e.strerror})") from None
             console.print(f"plot written to {target}", highlight=False)
     if as_json:
-        out.print_json(json.dumps(report.to_dict()))
+        typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
         out.print(report_table(report))

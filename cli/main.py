@@ -5,6 +5,7 @@ from __future__ import annotations
 import typer
 
 from .eval_cmd import eval_command
+from .synth_cmd import synth_command
 
 app = typer.Typer(
     name="d3lvo",
@@ -30,6 +31,7 @@ def root(version: bool = typer.Option(False, "--version", callback=_version, is_
 
 
 app.command("eval")(eval_command)
+app.command("synth")(synth_command)
 
 
 def main() -> None:

@@ -95,10 +95,10 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
     """Pair estimate poses with GT frames; returns (est frame index array, valid mask over GT, notes)."""
     notes: list[str] = []
     ids = est.frame_ids
-    if ids.max(initial=-1) >= len(gt) or ids.min(initial=0) < 0:
-        raise D3LVOInputError(est_name, f"frame index {int(ids.max())} is outside the {len(gt)} GT frames")
     if len(est) > len(gt):
         raise D3LVOInputError(est_name, f"{len(est)} poses but the ground truth has only {len(gt)}")
+    if ids.max(initial=-1) >= len(gt) or ids.min(initial=0) < 0:
+        raise D3LVOInputError(est_name, f"frame index {int(ids.max())} is outside the {len(gt)} GT frames")
     if len(est) < len(gt) and np.array_equal(ids, np.arange(len(est))):
         notes.append(f"estimate has {len(est)} of {len(gt)} poses: evaluated on the first {len(est)} frames")
     elif len(est) < len(gt):

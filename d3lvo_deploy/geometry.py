@@ -161,6 +161,14 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(d, -1.0, 1.0))
 
 
+def rotation_angle_precise(R: np.ndarray) -> np.ndarray:
+    """Angle via atan2(|axis part|, cos part): accurate for tiny angles, where acos is not."""
+    R = np.asarray(R, dtype=np.float64)
+    c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.arctan2(0.5 * np.linalg.norm(v, axis=-1), c)
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares (R, t, s) with dst ~ s R src + t (Umeyama 1991). src, dst: (N,3)."""
     src = np.asarray(src, dtype=np.float64)

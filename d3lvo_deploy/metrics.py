@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import relative, rotation_angle, se3_inv
+from .geometry import relative, rotation_angle_precise, se3_inv
 
 SEGMENT_LENGTHS = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 STEP_SIZE = 10  # a new segment starts every 10 frames (one second at 10 Hz)
@@ -50,9 +50,10 @@ def segment_errors(gt: np.ndarray, est: np.ndarray, valid: np.ndarray | None = N
             last = last_frame_from_segment_length(dist, first, length)
             if last == -1 or (valid is not None and not (valid[first] and valid[last])):
                 continue
-            delta_gt = relative(gt[first], gt[last])
-            delta_est = relative(est[first], est[last])
-            err = se3_inv(delta_est) @ delta_gt
+            # general inverses, as the devkit's Matrix::inv: GT rotations are not exactly orthonormal
+            delta_gt = np.linalg.inv(gt[first]) @ gt[last]
+            delta_est = np.linalg.inv(est[first]) @ est[last]
+            err = np.linalg.inv(delta_est) @ delta_gt
             length32 = np.float32(length)
             rows.append((first, _devkit_rotation_error(err) / length32, _devkit_translation_error(err) / length32,
                          length, length / (0.1 * (last - first + 1))))
@@ -92,7 +93,7 @@ def rpe_from_motions(gt_rel: np.ndarray, est_rel: np.ndarray) -> tuple[float, fl
     if len(gt_rel) == 0:
         return float("nan"), float("nan")
     e = se3_inv(np.asarray(gt_rel, dtype=np.float64)) @ np.asarray(est_rel, dtype=np.float64)
-    return float(np.linalg.norm(e[:, :3, 3], axis=1).mean()), float(np.degrees(rotation_angle(e[:, :3, :3])).mean())
+    return float(np.linalg.norm(e[:, :3, 3], axis=1).mean()), float(np.degrees(rotation_angle_precise(e[:, :3, :3])).mean())
 
 
 def rpe(gt: np.ndarray, est: np.ndarray, delta: int = 1) -> tuple[float, float]:

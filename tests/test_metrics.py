@@ -1,0 +1,156 @@
+"""Evaluation: trajectories whose errors are computed on paper, real GT files, and published results."""
+
+import math
+
+import numpy as np
+import pytest
+from conftest import shared_path
+
+from d3lvo_deploy import metrics
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.evaluation import evaluate, evaluate_files
+from d3lvo_deploy.geometry import apply_sim3, axis_angle_to_rot, make_se3, relative
+from d3lvo_deploy.poses import Trajectory, read_poses
+
+
+def straight(n, step=1.0):
+    """Driving along z at `step` metres per frame."""
+    return np.stack([make_se3(np.eye(3), [0, 0, step * i]) for i in range(n)])
+
+
+def expected_segments(n, step=1.0):
+    """(first, length, last) of the devkit's segments on a straight line, by hand."""
+    out = []
+    for first in range(0, n, 10):
+        for L in metrics.SEGMENT_LENGTHS:
+            k = int(math.floor(L / step)) + 1  # first frame strictly beyond L metres
+            if first + k < n:
+                out.append((first, L, first + k))
+    return out
+
+
+def test_constant_scale_drift_gives_exact_t_rel():
+    gt = straight(1000)
+    est = straight(1000, 1.01)  # 1 % too long, every segment
+    res = evaluate(Trajectory.from_poses(gt), Trajectory.from_poses(est))
+    segs = expected_segments(1000)
+    assert res.segments == len(segs)
+    # t_err of a segment = 0.01 * (last - first) metres, divided by its nominal length
+    expect = np.mean([0.01 * (last - first) / L for first, L, last in segs]) * 100
+    assert res.t_rel == pytest.approx(expect, rel=1e-5)
+    assert res.r_rel == 0.0
+    assert res.rpe_t == pytest.approx(0.01, rel=1e-9)
+
+
+def test_pure_yaw_bias():
+    """Estimate = GT positions with a heading that drifts by delta per frame."""
+    n, delta = 900, 1e-3
+    gt = straight(n)
+    est = np.stack([make_se3(axis_angle_to_rot([0, delta * i, 0]), gt[i][:3, 3]) for i in range(n)])
+    res = evaluate(Trajectory.from_poses(gt), Trajectory.from_poses(est))
+    segs = expected_segments(n)
+    r = np.mean([(last - first) * delta / L for first, L, last in segs])
+    # E's translation = (I - R(-first*delta)) dp: |.| = 2 sin(first*delta/2) |dp|
+    t = np.mean([2 * np.sin(first * delta / 2) * (last - first) / L for first, L, last in segs])
+    assert res.r_rel == pytest.approx(np.degrees(r) * 100, rel=1e-3)  # devkit float32 acos
+    assert res.t_rel == pytest.approx(t * 100, rel=1e-4)
+    assert res.rpe_r == pytest.approx(np.degrees(delta), rel=1e-3)
+
+
+def test_alignment_undoes_a_similarity():
+    rng = np.random.default_rng(0)
+    gt = read_poses(shared_path("kitti_gt_poses", "07.txt")).poses[:300]
+    R = axis_angle_to_rot(rng.normal(size=3) * 0.3)
+    est = apply_sim3(gt, R, np.array([5.0, -2.0, 1.0]), 0.37)
+    est = relative(est[0], est)
+    g = Trajectory.from_poses(gt)
+    assert evaluate(g, Trajectory.from_poses(est), align="7dof").ate < 1e-6
+    assert evaluate(g, Trajectory.from_poses(est), align="6dof").ate > 1.0
+    res = evaluate(g, Trajectory.from_poses(est), align="scale")
+    assert res.scale == pytest.approx(1 / 0.37, rel=1e-6)
+
+
+@pytest.mark.parametrize("seq", [f"{i:02d}" for i in range(11)])
+def test_real_gt_against_itself_is_zero(seq):
+    gt = read_poses(shared_path("kitti_gt_poses", f"{seq}.txt"))
+    res = evaluate(gt, gt)
+    assert res.t_rel < 1e-12 and res.r_rel == 0.0 and res.ate == 0.0
+    assert res.rpe_t < 1e-9 and res.rpe_r < 1e-6
+    assert res.segments > 0
+
+
+def test_real_gt_with_scaled_translation():
+    """Scaling every position by 1.02: a segment's error is 0.02 * chord / length (reference below)."""
+    gt = read_poses(shared_path("kitti_gt_poses", "04.txt")).poses
+    est = gt.copy()
+    est[:, :3, 3] *= 1.02
+    res = evaluate(Trajectory.from_poses(gt), Trajectory.from_poses(est))
+    # independent reference: path length in float64, plain loops
+    dist = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    errs = []
+    for first in range(0, len(gt), 10):
+        for L in (100, 200, 300, 400, 500, 600, 700, 800):
+            beyond = np.nonzero(dist > dist[first] + L)[0]
+            if len(beyond):
+                last = beyond[0]
+                chord = np.linalg.inv(gt[first]) @ gt[last]
+                errs.append(0.02 * np.linalg.norm(chord[:3, 3]) / L)
+    assert res.segments == len(errs)
+    assert res.t_rel == pytest.approx(np.mean(errs) * 100, rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    "gt, est, t_rel, r_rel",
+    [
+        # DF-VO on 09 / 10 as published (D3LVO paper Table I, row DFVO)
+        ("09", "dfvo/09.txt", 2.61, 0.29),
+        ("10", "dfvo/10.txt", 2.29, 0.37),
+        # ORB-SLAM2 stereo on 00 as published (Mur-Artal & Tardos 2017, Table II: 0.70 %, 0.25 deg/100 m)
+        ("00", "00_orbslam2_stereo.txt", 0.70, 0.25),
+    ],
+)
+def test_reproduces_published_numbers(gt, est, t_rel, r_rel):
+    rep = evaluate_files([(shared_path("kitti_gt_poses", f"{gt}.txt"), shared_path("kitti_results", est))])
+    s = rep.sequences[0]
+    assert abs(s.t_rel - t_rel) <= 0.005 + 1e-9
+    assert abs(s.r_rel - r_rel) <= 0.005 + 1e-9
+
+
+def test_several_sequences_pool_segments():
+    pairs = [(shared_path("kitti_gt_poses", f"{s}.txt"), shared_path("kitti_results", "dfvo", f"{s}.txt")) for s in ("09", "10")]
+    rep = evaluate_files(pairs)
+    a, b = rep.sequences
+    o = rep.overall
+    assert o["segments"] == a.segments + b.segments
+    expect = (a.t_rel * a.segments + b.t_rel * b.segments) / (a.segments + b.segments)
+    assert o["t_rel"] == pytest.approx(expect, rel=1e-5)
+    assert min(a.t_rel, b.t_rel) < o["t_rel"] < max(a.t_rel, b.t_rel)
+
+
+def test_skipped_frames_leave_out_their_segments():
+    gt = read_poses(shared_path("kitti_gt_poses", "09.txt"))
+    est = read_poses(shared_path("kitti_results", "mono_example", "09.txt"))
+    full = evaluate(gt, Trajectory(gt.poses.copy(), gt.frame_ids))
+    res = evaluate(gt, est, align="7dof")
+    assert 0 < res.segments < full.segments
+    assert any("skips" in n for n in res.notes)
+    assert 0.5 < res.t_rel < 20
+
+
+def test_short_path_reports_unavailable_but_computes_ate():
+    gt = straight(50)  # 49 m
+    est = straight(50, 1.1)
+    res = evaluate(Trajectory.from_poses(gt), Trajectory.from_poses(est))
+    assert res.t_rel is None and res.r_rel is None
+    assert any("shorter than" in n for n in res.notes)
+    assert res.ate == pytest.approx(np.sqrt(np.mean((0.1 * np.arange(50)) ** 2)))
+
+
+def test_bad_inputs():
+    gt = Trajectory.from_poses(straight(20))
+    with pytest.raises(D3LVOInputError, match="only 20"):
+        evaluate(gt, Trajectory.from_poses(straight(25)), est_name="est.txt")
+    with pytest.raises(D3LVOInputError, match="at least 2"):
+        evaluate(gt, Trajectory.from_poses(straight(1)))
+    res = evaluate(gt, Trajectory.from_poses(straight(12)))
+    assert any("12 of 20" in n for n in res.notes)

@@ -1,0 +1,69 @@
+"""Trajectory files: KITTI, indexed KITTI (kitti-odom-eval) and TUM, and their errors."""
+
+import numpy as np
+import pytest
+from conftest import shared_path
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3
+from d3lvo_deploy.poses import read_poses, write_poses
+
+
+def _traj(n=5):
+    return np.stack([make_se3(axis_angle_to_rot([0.1 * i, -0.05 * i, 0.02]), [i, 0.5 * i, -i]) for i in range(n)])
+
+
+@pytest.mark.parametrize("fmt", ["kitti", "tum"])
+def test_round_trip(tmp_path, fmt):
+    poses = _traj()
+    f = tmp_path / f"t.{fmt}"
+    write_poses(f, poses, fmt)
+    back = read_poses(f)
+    np.testing.assert_allclose(back.poses, poses, atol=1e-8)
+    if fmt == "tum":
+        np.testing.assert_allclose(back.timestamps, np.arange(5) * 0.1)
+
+
+def test_kitti_line_layout_is_row_major(tmp_path):
+    f = tmp_path / "one.txt"
+    f.write_text("1 2 3 4 5 6 7 8 9 10 11 12\n")
+    T = read_poses(f).poses[0]
+    np.testing.assert_array_equal(T[:3], [[1, 2, 3, 4], [5, 6, 7, 8], [9, 10, 11, 12]])
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+
+
+def test_tum_quaternion_order(tmp_path):
+    f = tmp_path / "tum.txt"
+    s = np.sqrt(0.5)
+    f.write_text(f"0.5 1 2 3 0 0 {s} {s}\n")  # qx qy qz qw: 90 deg about z
+    t = read_poses(f)
+    np.testing.assert_allclose(t.poses[0][:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(t.poses[0][:3, 3], [1, 2, 3])
+    assert t.timestamps[0] == 0.5
+
+
+def test_indexed_rows_with_skipped_frames():
+    t = read_poses(shared_path("kitti_results", "mono_example", "09.txt"))
+    gt = read_poses(shared_path("kitti_gt_poses", "09.txt"))
+    assert len(t) == 1589 and len(gt) == 1591
+    assert t.frame_ids[0] > 0 and np.all(np.diff(t.frame_ids) >= 1)
+    assert t.frame_ids[-1] <= 1590
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("", "empty"),
+        ("1 2 3\n", "3 columns"),
+        ("1 2 3 4 5 6 7 8 9 10 11 12\n1 2 3\n", "different column counts"),
+        ("1 2 3 4 5 6 7 8 9 10 11 nan\n", "NaN"),
+        ("1 2 3 4 5 6 7 8 9 10 11 x\n", "line 1"),
+        ("3 1 0 0 0 0 1 0 0 0 0 1 0\n2 1 0 0 0 0 1 0 0 0 0 1 0\n", "increasing"),
+    ],
+)
+def test_bad_files_name_the_file(tmp_path, text, words):
+    f = tmp_path / "bad.txt"
+    f.write_text(text)
+    with pytest.raises(D3LVOInputError) as e:
+        read_poses(f)
+    assert "bad.txt" in str(e.value) and words in str(e.value)
