@@ -1,0 +1,93 @@
+"""The `d3lvo` command: eval and synth end to end, JSON output, plots, and bad input without tracebacks."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import shared_path
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.geometry import make_se3
+from d3lvo_deploy.poses import write_poses
+
+runner = CliRunner()
+
+
+def _straight(n, step):
+    return np.stack([make_se3(np.eye(3), [0, 0, step * i]) for i in range(n)])
+
+
+def test_eval_json_and_plot(tmp_path):
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_poses(gt, _straight(400, 1.0))
+    write_poses(est, _straight(400, 1.01), fmt="tum")  # formats can differ
+    plot = tmp_path / "traj.png"
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--json", "--plot", str(plot)])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    for key in ("t_rel", "r_rel", "ate", "rpe_t", "rpe_r", "segments"):
+        assert key in data
+    assert data["t_rel"] == pytest.approx(1.0, abs=0.02)
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_eval_folders(tmp_path):
+    gt_dir = shared_path("kitti_gt_poses")
+    r = runner.invoke(app, ["eval", "--gt", str(gt_dir), "--est", str(shared_path("kitti_results", "dfvo")), "--json"])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert [s["name"] for s in data["sequences"]] == ["09", "10"]
+    assert data["segments"] == sum(s["segments"] for s in data["sequences"])
+
+
+def test_eval_table(tmp_path):
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_poses(gt, _straight(50, 1.0))
+    write_poses(est, _straight(50, 1.1))
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est)])
+    assert r.exit_code == 0
+    assert "n/a" in r.output and "shorter than" in r.output  # 49 m path: no 100 m segment
+
+
+@pytest.mark.parametrize(
+    "setup, words",
+    [
+        (lambda d: (d / "gt.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5), ["est.txt", "not found"]),
+        (lambda d: [(d / "gt.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5),
+                    (d / "est.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 nan\n" * 5)], ["est.txt", "NaN"]),
+        (lambda d: [(d / "gt.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5),
+                    (d / "est.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 9)], ["est.txt", "only 5"]),
+    ],
+)
+def test_eval_bad_input_is_one_clear_line(tmp_path, setup, words):
+    setup(tmp_path)
+    r = runner.invoke(app, ["eval", "--gt", str(tmp_path / "gt.txt"), "--est", str(tmp_path / "est.txt")])
+    assert r.exit_code == 1
+    assert "Traceback" not in r.output
+    for w in words:
+        assert w in r.output
+
+
+def test_eval_bad_align(tmp_path):
+    r = runner.invoke(app, ["eval", "--gt", "a", "--est", "b", "--align", "9dof"])
+    assert r.exit_code == 1 and "--align" in r.output
+
+
+def test_synth_then_eval(tmp_path):
+    out = tmp_path / "seq"
+    r = runner.invoke(app, ["synth", "--out", str(out), "--frames", "3", "--size", "320x96", "--seed", "4"])
+    assert r.exit_code == 0, r.output
+    assert len(list((out / "image_2").glob("*.png"))) == 3
+    r = runner.invoke(app, ["eval", "--gt", str(out / "poses.txt"), "--est", str(out / "poses.txt"), "--json"])
+    assert r.exit_code == 0
+    assert json.loads(r.stdout)["ate"] == 0.0
+
+
+def test_synth_bad_size_and_unwritable(tmp_path):
+    r = runner.invoke(app, ["synth", "--out", str(tmp_path / "x"), "--size", "big"])
+    assert r.exit_code == 1 and "--size" in r.output
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    r = runner.invoke(app, ["synth", "--out", str(blocker / "seq"), "--frames", "2", "--size", "320x96"])
+    assert r.exit_code == 1 and "cannot create" in r.output and "Traceback" not in r.output

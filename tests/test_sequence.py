@@ -1,0 +1,86 @@
+"""Reading KITTI odometry folders, and one clear error for each kind of broken folder."""
+
+import shutil
+
+import numpy as np
+import pytest
+from conftest import shared_path
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.sequence import KittiSequence
+
+
+def test_real_snippet_reads():
+    seq = KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
+    assert len(seq) == 20
+    assert seq.image(0).shape == (375, 1242, 3)
+    assert seq.scan(19).shape[1] == 4
+    assert seq.ground_truth is None  # the README says: no GT for this drive
+
+
+def test_kitti_root_layout_finds_poses(small_synth, tmp_path):
+    root = tmp_path / "kitti"
+    shutil.copytree(small_synth, root / "sequences" / "09")
+    (root / "poses").mkdir()
+    shutil.move(root / "sequences" / "09" / "poses.txt", root / "poses" / "09.txt")
+    seq = KittiSequence.from_kitti_root(root, "09")
+    assert seq.gt_path == root / "poses" / "09.txt"
+    assert len(seq.ground_truth) == len(seq)
+
+
+@pytest.fixture
+def broken(small_synth, tmp_path):
+    dst = tmp_path / "seq"
+    shutil.copytree(small_synth, dst)
+    return dst
+
+
+def _fails(path, *words):
+    with pytest.raises(D3LVOInputError) as e:
+        KittiSequence.open(path)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_missing_scan(broken):
+    (broken / "velodyne" / "000003.bin").unlink()
+    _fails(broken, "6 images but 5 scans", "000003")
+
+
+def test_missing_frame_in_the_middle(broken):
+    (broken / "velodyne" / "000003.bin").unlink()
+    (broken / "image_2" / "000003.png").unlink()
+    _fails(broken, "000002 to 000004")
+
+
+def test_missing_calib(broken):
+    (broken / "calib.txt").unlink()
+    _fails(broken, "calib.txt", "not found")
+
+
+def test_times_count(broken):
+    (broken / "times.txt").write_text("0.0\n0.1\n")
+    _fails(broken, "times.txt", "2 timestamps for 6 frames")
+
+
+def test_gt_count(broken):
+    (broken / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
+    seq = KittiSequence.open(broken)
+    with pytest.raises(D3LVOInputError, match="3 poses for a sequence of 6"):
+        seq.ground_truth
+
+
+def test_corrupt_png(broken):
+    (broken / "image_2" / "000002.png").write_bytes(b"not a png at all")
+    seq = KittiSequence.open(broken)
+    with pytest.raises(D3LVOInputError, match="000002.png.*decoded"):
+        seq.image(2)
+
+
+def test_truncated_scan(broken):
+    f = broken / "velodyne" / "000001.bin"
+    f.write_bytes(f.read_bytes()[:-6])
+    seq = KittiSequence.open(broken)
+    with pytest.raises(D3LVOInputError, match="000001.bin"):
+        seq.scan(1)
+    assert np.isfinite(seq.scan(0)).all()
