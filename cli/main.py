@@ -6,6 +6,7 @@ import typer
 
 from .eval_cmd import eval_command
 from .synth_cmd import synth_command
+from .train_cmd import train_command
 
 app = typer.Typer(
     name="d3lvo",
@@ -32,6 +33,7 @@ def root(version: bool = typer.Option(False, "--version", callback=_version, is_
 
 app.command("eval")(eval_command)
 app.command("synth")(synth_command)
+app.command("train")(train_command)
 
 
 def main() -> None:

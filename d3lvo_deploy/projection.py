@@ -16,7 +16,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class View:
-    """A bottom-centre crop of the source image, then a resize by `scale`."""
+    """A bottom-centre crop of the source image, then a resize to (width, height)."""
 
     src_width: int
     src_height: int
@@ -24,15 +24,12 @@ class View:
     left: int
     crop_width: int
     crop_height: int
-    scale: float = 1.0
+    width: int
+    height: int
 
     @property
-    def width(self) -> int:
-        return int(round(self.crop_width * self.scale))
-
-    @property
-    def height(self) -> int:
-        return int(round(self.crop_height * self.scale))
+    def scale(self) -> float:
+        return self.width / self.crop_width
 
     @property
     def affine(self) -> np.ndarray:
@@ -54,9 +51,17 @@ class View:
 
     def apply_image(self, image: np.ndarray) -> np.ndarray:
         crop = image[self.top : self.top + self.crop_height, self.left : self.left + self.crop_width]
-        if self.scale == 1.0:
+        if (self.width, self.height) == (self.crop_width, self.crop_height):
             return np.ascontiguousarray(crop)
         return cv2.resize(crop, (self.width, self.height), interpolation=cv2.INTER_AREA)
+
+
+    def apply_depth(self, depth: np.ndarray) -> np.ndarray:
+        """Depth maps resize with nearest neighbour: averaging would blend holes and edges."""
+        crop = depth[self.top : self.top + self.crop_height, self.left : self.left + self.crop_width]
+        if (self.width, self.height) == (self.crop_width, self.crop_height):
+            return np.ascontiguousarray(crop)
+        return cv2.resize(crop, (self.width, self.height), interpolation=cv2.INTER_NEAREST)
 
 
 def bottom_center_view(src_width: int, src_height: int, crop_width: int = 1216, crop_height: int = 352,
@@ -65,7 +70,27 @@ def bottom_center_view(src_width: int, src_height: int, crop_width: int = 1216, 
     if src_width < crop_width or src_height < crop_height:
         raise ValueError(f"image {src_width}x{src_height} is smaller than the {crop_width}x{crop_height} crop")
     return View(src_width, src_height, src_height - crop_height, (src_width - crop_width) // 2,
-                crop_width, crop_height, scale)
+                crop_width, crop_height, int(round(crop_width * scale)), int(round(crop_height * scale)))
+
+
+PAPER_CROP = (1216, 352)
+
+
+def network_view(src_width: int, src_height: int, net_width: int, net_height: int) -> View:
+    """How a source image becomes the network input.
+
+    The paper's rule when it applies: bottom-centre 1216x352 crop, then resize to the network
+    size (same aspect). Otherwise (small or odd images) the largest bottom-centre crop with the
+    network's aspect ratio, resized to it.
+    """
+    cw, ch = PAPER_CROP
+    if src_width >= cw and src_height >= ch and net_width * ch == net_height * cw:
+        v = bottom_center_view(src_width, src_height, cw, ch)
+        return View(v.src_width, v.src_height, v.top, v.left, cw, ch, net_width, net_height)
+    cw = min(src_width, int(src_height * net_width / net_height))
+    ch = min(src_height, int(round(cw * net_height / net_width)))
+    v = bottom_center_view(src_width, src_height, cw, ch)
+    return View(v.src_width, v.src_height, v.top, v.left, cw, ch, net_width, net_height)
 
 
 def project_points(points: np.ndarray, P: np.ndarray, width: int, height: int,

@@ -1,0 +1,65 @@
+"""`d3lvo train`: train D3LVO on KITTI-format sequences (works under torchrun for DDP)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import typer
+
+from d3lvo_deploy.errors import D3LVOInputError
+
+from .common import console, friendly_errors
+from .progress import frame_progress
+
+
+@friendly_errors
+def train_command(
+    data: list[Path] = typer.Option(..., "--data", help="Training sequence folder (repeat for several)."),
+    out: Path = typer.Option(..., "--out", help="Checkpoint path (written atomically every --ckpt-every steps)."),
+    val: list[Path] = typer.Option([], "--val", help="Validation sequence folder (repeatable)."),
+    steps: int = typer.Option(1000, "--steps"),
+    resume: Path | None = typer.Option(None, "--resume", help="Continue from this checkpoint."),
+    mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
+    completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
+    preset: str = typer.Option("paper", "--preset", help="paper (1216x352) | small (608x176, CPU)."),
+    batch_size: int = typer.Option(4, "--batch-size"),
+    lr: float = typer.Option(3e-4, "--lr"),
+    val_every: int = typer.Option(500, "--val-every"),
+    ckpt_every: int = typer.Option(100, "--ckpt-every"),
+    seed: int = typer.Option(0, "--seed"),
+    device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
+    workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
+) -> None:
+    """Train D3LVO; reports loss, and t_rel/r_rel/ATE on --val sequences through the evaluator."""
+    from models.config import D3LVOConfig
+    from models.train import TrainConfig, train
+
+    if preset not in ("paper", "small"):
+        raise D3LVOInputError(None, f"--preset must be paper or small, not {preset!r}")
+    try:
+        cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion)
+    except ValueError as e:
+        raise D3LVOInputError(None, str(e)) from None
+    for d in [*data, *val]:
+        if not d.is_dir():
+            raise D3LVOInputError(d, "sequence folder not found")
+    tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps,
+                     batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
+                     device=device, num_workers=workers)
+    rank0 = int(os.environ.get("RANK", "0")) == 0
+    with frame_progress() as bar:
+        task = bar.add_task("train", total=steps, rate="", visible=rank0)
+
+        def on_step(step: int, rec: dict) -> None:
+            bar.update(task, completed=step, rate=f"loss {rec['loss']:.3f}")
+            if "val" in rec:
+                for name, m in rec["val"].items():
+                    t = "n/a" if m["t_rel"] is None else f"{m['t_rel']:.2f} %"
+                    console.print(f"step {step} val {name}: t_rel {t}, ATE {m['ate']:.3f} m, "
+                                  f"RPE {m['rpe_t']:.3f} m / {m['rpe_r']:.3f} deg", highlight=False)
+
+        rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
+    if rank0:
+        console.print(f"checkpoint {out} at step {rec.get('step')} (loss {rec.get('loss', float('nan')):.4f})",
+                      highlight=False)

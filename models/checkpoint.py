@@ -1,0 +1,61 @@
+"""Checkpoints that say what they are: a format tag and version, the model config, training state."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from d3lvo_deploy.errors import D3LVOInputError
+
+from .config import D3LVOConfig
+
+FORMAT = "d3lvo-checkpoint"
+VERSION = 1
+
+
+def save_checkpoint(path: str | Path, model, cfg: D3LVOConfig, **state) -> None:
+    """Atomic: written to a temporary file and renamed, so a killed run keeps the last good one."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save({"format": FORMAT, "version": VERSION, "config": cfg.to_dict(), "model": model.state_dict(), **state}, tmp)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise D3LVOInputError(path, f"cannot write the checkpoint ({e.strerror})") from None
+
+
+def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None) -> dict:
+    """Read and validate; with `expect`, refuse a checkpoint made with another config."""
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, "checkpoint not found")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # torch raises many types for a non-checkpoint file
+        raise D3LVOInputError(path, f"not a PyTorch checkpoint ({type(e).__name__})") from None
+    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
+        raise D3LVOInputError(path, "not a D3LVO checkpoint (no 'd3lvo-checkpoint' format tag)")
+    if ck.get("version") != VERSION:
+        raise D3LVOInputError(path, f"checkpoint format version {ck.get('version')}, this toolkit reads {VERSION}")
+    try:
+        cfg = D3LVOConfig.from_dict(ck["config"])
+    except (TypeError, ValueError) as e:
+        raise D3LVOInputError(path, f"invalid model config in checkpoint ({e})") from None
+    if expect is not None and cfg != expect:
+        diff = sorted(k for k, v in expect.to_dict().items() if ck["config"].get(k) != v and
+                      not (isinstance(v, tuple) and list(v) == ck["config"].get(k)))
+        raise D3LVOInputError(path, f"checkpoint was made with another model config (differs in: {', '.join(diff)})")
+    ck["config"] = cfg
+    return ck
+
+
+def build_model(ck: dict):
+    """A D3LVO model with the checkpoint's weights, in eval mode."""
+    from .d3lvo import D3LVO
+
+    model = D3LVO(ck["config"])
+    model.load_state_dict(ck["model"])
+    return model.eval()

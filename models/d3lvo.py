@@ -1,0 +1,93 @@
+"""The whole D3LVO network, split into the three stages the runtime runs.
+
+`complete` (RGB + sparse -> dense depth), `encode` (one frame -> pyramid; run once per frame and
+cached), `flow_pose` (two pyramids -> flows, per-level poses, weights, final relative pose).
+The relative pose is T(t-1 -> t) of the image_2 camera: frame t's pose in frame t-1's coordinates.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .completion import DepthCompletion
+from .config import D3LVOConfig
+from .encoder import PyramidEncoder
+from .flow import ContextNet, FlowLevel, upsample_flow
+from .layers import inverse_depth, resize_like
+from .pose import IDENTITY, PoseLevel, normalise_pose, pose_to_matrix
+
+
+class D3LVO(nn.Module):
+    def __init__(self, cfg: D3LVOConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.completion = (
+            DepthCompletion(cfg.completion_widths, cfg.min_depth, cfg.max_depth) if cfg.learned_completion else None
+        )
+        self.encoder = PyramidEncoder(cfg)
+        self.flow = nn.ModuleDict()
+        self.pose = nn.ModuleDict()
+        for i, lvl in enumerate(cfg.flow_levels):
+            ch = cfg.feature_widths[lvl]
+            self.flow[str(lvl)] = FlowLevel(cfg, ch, coarsest=i == 0)
+            self.pose[str(lvl)] = PoseLevel(cfg, cfg.flow_hidden[1] + 2 + (1 if cfg.uses_depth else 0))
+        finest = cfg.flow_levels[-1]
+        self.context = ContextNet(cfg.flow_hidden[1] + 2) if cfg.context else None
+        self.register_buffer("rgb_mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(cfg.rgb_std).view(1, 3, 1, 1), persistent=False)
+        self._finest = finest
+
+    # -- stage 1 -------------------------------------------------------------------------------
+    def normalise(self, rgb: torch.Tensor) -> torch.Tensor:
+        """rgb in [0, 1] -> ImageNet-normalised."""
+        return (rgb - self.rgb_mean) / self.rgb_std
+
+    def complete(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Dense depth (m) from RGB [0,1] and the depth input; identity for rgb_sparse / ipbasic."""
+        if self.completion is None:
+            return depth
+        return self.completion(self.normalise(rgb), depth)
+
+    # -- stage 2 -------------------------------------------------------------------------------
+    def encode(self, rgb: torch.Tensor, depth: torch.Tensor | None):
+        inv = inverse_depth(depth, self.cfg.min_depth) if self.cfg.uses_depth else None
+        return self.encoder(self.normalise(rgb), inv)
+
+    # -- stage 3 -------------------------------------------------------------------------------
+    def flow_pose(self, feats1, feats2, depths1) -> dict[str, torch.Tensor | list[torch.Tensor]]:
+        ref = feats1[self.cfg.flow_levels[0]]
+        pose = torch.tensor(IDENTITY, dtype=ref.dtype, device=ref.device).expand(ref.shape[0], 7)
+        flow = None
+        flows, poses, confs = [], [], []
+        for lvl in self.cfg.flow_levels:
+            f1, f2 = feats1[lvl], feats2[lvl]
+            d1 = depths1[lvl] if self.cfg.uses_depth else None
+            flow_up = None if flow is None else upsample_flow(flow, f1.shape[-2:])
+            flow, hidden = self.flow[str(lvl)](f1, f2, flow_up, d1)
+            if self.context is not None and lvl == self._finest:
+                flow = self.context(hidden, flow)
+            x = torch.cat([hidden, flow / 10.0] + ([d1] if d1 is not None else []), 1)
+            pose, conf = self.pose[str(lvl)](x, pose)
+            flows.append(flow)
+            poses.append(pose)
+            confs.append(conf)
+        levels = torch.stack(poses, 1)  # (B, L, 7)
+        weights = torch.softmax(torch.cat(confs, 1), dim=1)  # (B, L)
+        final = normalise_pose((weights.unsqueeze(-1) * levels).sum(1))
+        return {"flows": flows, "poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)}
+
+    def forward(self, rgb1, rgb2, depth1=None, depth2=None) -> dict:
+        """rgb: (B,3,H,W) in [0,1]; depth: metres (B,1,H,W): sparse LiDAR, or IP-Basic dense."""
+        out: dict = {}
+        if self.cfg.uses_depth:
+            dense = self.complete(torch.cat([rgb1, rgb2]), torch.cat([depth1, depth2]))
+            out["dense1"], out["dense2"] = dense.chunk(2)
+        else:
+            dense = None
+        feats, depths = self.encode(torch.cat([rgb1, rgb2]), dense)
+        f1 = [None if f is None else f.chunk(2)[0] for f in feats]
+        f2 = [None if f is None else f.chunk(2)[1] for f in feats]
+        d1 = [d.chunk(2)[0] for d in depths]
+        out.update(self.flow_pose(f1, f2, d1))
+        return out

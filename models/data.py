@@ -1,0 +1,127 @@
+"""Training pairs from KITTI-format sequences (real KITTI or `d3lvo synth` output).
+
+A sample is frames (t-1, t) at the network resolution: RGB in [0,1], the depth input the config
+asks for (sparse LiDAR, IP-Basic dense, or nothing), the renderer's dense depth where the
+sequence has `depth_2/` (else zeros), and the GT relative pose of the image_2 camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
+from d3lvo_deploy.ipbasic import fill_in_fast
+from d3lvo_deploy.projection import View, network_view, sparse_depth
+from d3lvo_deploy.sequence import KittiSequence
+
+from .augment import flip_images, flip_pose, roll_pose, rotate_images
+from .config import D3LVOConfig
+
+
+@dataclass
+class AugmentConfig:
+    flip: float = 0.5  # probability
+    brightness: float = 0.2  # factor in [1 - b, 1 + b], shared by both frames
+    rotation_deg: float = 2.0  # uniform in [-r, r], shared by both frames
+
+
+def pose_vector(A: np.ndarray) -> np.ndarray:
+    """4x4 -> (t, q) with q = (w, x, y, z), w >= 0."""
+    return np.concatenate([A[:3, 3], rot_to_quat(A[:3, :3])]).astype(np.float32)
+
+
+class FrameLoader:
+    """Reads one frame of a sequence at the network resolution: what the runtime will see too."""
+
+    def __init__(self, seq: KittiSequence, cfg: D3LVOConfig):
+        self.seq, self.cfg = seq, cfg
+        h, w = seq.image(0).shape[:2]
+        self.view: View = network_view(w, h, cfg.width, cfg.height)
+        self.P = self.view.project_matrix(seq.calib.P_velo_to_image2)
+        self.K = self.view.project_matrix(seq.calib.K2)
+
+    def rgb(self, i: int) -> np.ndarray:
+        img = self.seq.image(i)
+        if img.shape[:2] != (self.view.src_height, self.view.src_width):
+            raise D3LVOInputError(self.seq.image_path(i), f"size {img.shape[1]}x{img.shape[0]} differs from frame 0")
+        return self.view.apply_image(img).astype(np.float32) / 255.0
+
+    def depth_input(self, i: int) -> np.ndarray:
+        if self.cfg.depth_input == "none":
+            return np.zeros((self.cfg.height, self.cfg.width), np.float32)
+        d = sparse_depth(self.seq.scan(i), self.P, self.cfg.width, self.cfg.height)
+        if self.cfg.depth_input == "ipbasic":
+            d = fill_in_fast(d, max_depth=self.cfg.max_depth)
+        return d
+
+    def gt_depth(self, i: int) -> np.ndarray:
+        f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
+        if not f.is_file():
+            return np.zeros((self.cfg.height, self.cfg.width), np.float32)
+        d = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if d is None:
+            raise D3LVOInputError(f, "cannot be decoded as a depth PNG")
+        return self.view.apply_depth(d.astype(np.float32) / 256.0)
+
+
+class PairDataset(Dataset):
+    def __init__(self, seq_dirs: list[str | Path], cfg: D3LVOConfig, augment: AugmentConfig | None = None,
+                 seed: int = 0):
+        self.cfg, self.augment, self.seed = cfg, augment, seed
+        self.loaders: list[FrameLoader] = []
+        self.items: list[tuple[int, int]] = []
+        for d in seq_dirs:
+            seq = KittiSequence.open(d)
+            if seq.ground_truth is None:
+                raise D3LVOInputError(d, "has no ground-truth poses (poses.txt or ../../poses/NN.txt) to train on")
+            self.loaders.append(FrameLoader(seq, cfg))
+            self.items += [(len(self.loaders) - 1, i) for i in range(1, len(seq))]
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def relative_pose(self, k: int, i: int) -> np.ndarray:
+        """GT motion of the image_2 camera from frame i-1 to i."""
+        loader = self.loaders[k]
+        gt = loader.seq.ground_truth.poses
+        return change_frame(relative(gt[i - 1], gt[i]), loader.seq.calib.T_cam2_cam0)
+
+    def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
+        k, i = self.items[idx]
+        L = self.loaders[k]
+        imgs = [L.rgb(i - 1), L.rgb(i)]
+        deps = [L.depth_input(i - 1), L.depth_input(i)]
+        gts = [L.gt_depth(i - 1), L.gt_depth(i)]
+        A = self.relative_pose(k, i)
+        if self.augment is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, idx])
+            a = self.augment
+            cx, cy = float(L.K[0, 2]), float(L.K[1, 2])
+            if rng.uniform() < a.flip:
+                imgs, deps, gts = flip_images(*imgs), flip_images(*deps), flip_images(*gts)
+                A = flip_pose(A)
+                cx = self.cfg.width - 1 - cx  # the principal point mirrors too
+            if a.rotation_deg > 0:
+                ang = float(rng.uniform(-a.rotation_deg, a.rotation_deg))
+                centre = (cx, cy)
+                imgs, deps2 = rotate_images(imgs, deps + gts, ang, centre)
+                deps, gts = deps2[:2], deps2[2:]
+                A = roll_pose(A, ang)
+            if a.brightness > 0:
+                f = float(rng.uniform(1 - a.brightness, 1 + a.brightness))
+                imgs = [np.clip(im * f, 0.0, 1.0) for im in imgs]
+        t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
+        return {
+            "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),
+            "depth1": t(deps[0])[None], "depth2": t(deps[1])[None],
+            "gt_depth1": t(gts[0])[None], "gt_depth2": t(gts[1])[None],
+            "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)),
+        }

@@ -1,0 +1,69 @@
+"""The 4-level RGB-D feature pyramid with attention (paper Sec. III-B, Fig. 2).
+
+The 4-channel RGB-D input is split into an RGB stream and a depth stream, because eq. 1 (CA)
+acts on RGB features and eq. 2 (SA) on depth features. Each level halves the resolution with a
+strided conv and a residual block (h/2, h/4, h/8, h/16). The two streams are fused per level by
+a 1x1 conv, plus cross attention (eq. 3) at `xa_levels`. Alongside the features, the encoder
+returns frame depth at each level (as min_depth/d) for G(D) and the pose head; it runs once per
+frame, so the runtime can cache it for the next pair.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+from .attention import ChannelAttention, CrossAttention, SpatialAttention
+from .config import D3LVOConfig
+from .layers import ResBlock, conv
+
+
+class PyramidEncoder(nn.Module):
+    def __init__(self, cfg: D3LVOConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.rgb = nn.ModuleList()
+        self.ca = nn.ModuleList()
+        self.dep = nn.ModuleList()
+        self.sa = nn.ModuleList()
+        self.fuse = nn.ModuleList()
+        self.xa = nn.ModuleDict()
+        cin_r, cin_d = 3, 1
+        for lvl in range(4):
+            cr, cd, cf = cfg.rgb_widths[lvl], cfg.depth_widths[lvl], cfg.feature_widths[lvl]
+            self.rgb.append(nn.Sequential(conv(cin_r, cr, stride=2), ResBlock(cr)))
+            self.ca.append(ChannelAttention(cr, cfg.ca_reduction))
+            if cfg.uses_depth:
+                self.dep.append(nn.Sequential(conv(cin_d, cd, stride=2), ResBlock(cd)))
+                self.sa.append(SpatialAttention())
+                if lvl in cfg.xa_levels and used:
+                    self.xa[str(lvl)] = CrossAttention(cr, cd, cfg.xa_dim, cf)
+            # only levels the flow uses get fused features: an unused head would be a dead branch
+            used = lvl in cfg.flow_levels
+            self.fuse.append(conv(cr + (cd if cfg.uses_depth else 0), cf, k=1) if used else nn.Identity())
+            cin_r, cin_d = cr, cd
+
+    def forward(self, rgb: torch.Tensor, inv_depth: torch.Tensor | None):
+        """rgb normalised (B,3,H,W); inv_depth (B,1,H,W) or None in rgb mode.
+
+        Returns fine-to-coarse lists indexed by level: features (None at levels the flow does not
+        use) and depth (empty in rgb mode).
+        """
+        feats: list[torch.Tensor | None] = []
+        depths: list[torch.Tensor] = []
+        xr, xd = rgb, inv_depth
+        for lvl in range(4):
+            xr = self.ca[lvl](self.rgb[lvl](xr))
+            used = lvl in self.cfg.flow_levels
+            if self.cfg.uses_depth:
+                xd = self.sa[lvl](self.dep[lvl](xd))
+                inv_depth = F.avg_pool2d(inv_depth, 2)
+                depths.append(inv_depth)
+                f = self.fuse[lvl](torch.cat([xr, xd], 1)) if used else None
+                if used and str(lvl) in self.xa:
+                    f = f + self.xa[str(lvl)](xr, xd)
+            else:
+                f = self.fuse[lvl](xr) if used else None
+            feats.append(f)
+        return feats, depths

@@ -1,0 +1,62 @@
+"""Small building blocks shared by the components."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+
+def conv(cin: int, cout: int, k: int = 3, stride: int = 1, dilation: int = 1, act: bool = True,
+         bn: bool = False) -> nn.Sequential:
+    layers: list[nn.Module] = [nn.Conv2d(cin, cout, k, stride, padding=dilation * (k // 2), dilation=dilation, bias=not bn)]
+    if bn:
+        layers.append(nn.BatchNorm2d(cout))
+    if act:
+        layers.append(nn.LeakyReLU(0.1, inplace=True))
+    return nn.Sequential(*layers)
+
+
+class ResBlock(nn.Module):
+    def __init__(self, ch: int):
+        super().__init__()
+        self.c1 = nn.Conv2d(ch, ch, 3, padding=1)
+        self.c2 = nn.Conv2d(ch, ch, 3, padding=1)
+        self.act = nn.LeakyReLU(0.1, inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(x + self.c2(self.act(self.c1(x))))
+
+
+def resize_like(x: torch.Tensor, ref: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    size = ref.shape[-2:]
+    if x.shape[-2:] == size:
+        return x
+    if mode == "bilinear":
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    return F.interpolate(x, size=size, mode=mode)
+
+
+def adaptive_avg_pool(x: torch.Tensor, out_hw: tuple[int, int]) -> torch.Tensor:
+    """AdaptiveAvgPool2d written as fixed slices + means (torch's bin rule).
+
+    Shapes are static at export, so this traces to plain Slice/ReduceMean and exports for any
+    input size, where ONNX's pooling needs sizes divisible by the output.
+    """
+    h, w = int(x.shape[-2]), int(x.shape[-1])
+    oh, ow = out_hw
+    rows = []
+    for i in range(oh):
+        h0, h1 = (i * h) // oh, -((-(i + 1) * h) // oh)
+        cols = []
+        for j in range(ow):
+            w0, w1 = (j * w) // ow, -((-(j + 1) * w) // ow)
+            cols.append(x[:, :, h0:h1, w0:w1].mean(dim=(2, 3)))
+        rows.append(torch.stack(cols, -1))
+    return torch.stack(rows, -2)
+
+
+def inverse_depth(depth: torch.Tensor, min_depth: float) -> torch.Tensor:
+    """min_depth / depth in (0, 1]; holes (depth <= 0) become 0, i.e. 'infinitely far / unknown'."""
+    valid = depth > 0
+    return torch.where(valid, min_depth / depth.clamp(min=min_depth), torch.zeros_like(depth))

@@ -1,0 +1,50 @@
+"""The pose loss of eq. 11-12, with learnable balance terms s_t, s_q (Kendall-style).
+
+l_l = |t_gt - t_l|_1 exp(-s_t) + s_t + |q_gt/|q_gt| - q_l/|q_l||_2^2 exp(-s_q) + s_q, and
+l = sum_l alpha_l l_l over the flow levels. The confidence-weighted final pose (eq. 10) is
+scored the same way with weight `alpha_final`: without that term the weights w_l would get no
+gradient at all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+
+@dataclass
+class LossConfig:
+    alphas: tuple[float, ...] = (0.2, 0.4, 0.8, 1.6)  # coarse to fine; the last len(levels) are used
+    alpha_final: float = 1.6
+    s_t_init: float = 0.0
+    s_q_init: float = -3.0
+    completion_weight: float = 0.05  # L1 (m) on depth GT where the data has it (synthetic depth_2)
+
+
+def _canonical(q: torch.Tensor) -> torch.Tensor:
+    q = q / q.norm(dim=-1, keepdim=True).clamp(min=1e-8)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+class PoseLoss(nn.Module):
+    def __init__(self, cfg: LossConfig = LossConfig()):
+        super().__init__()
+        self.cfg = cfg
+        self.s_t = nn.Parameter(torch.tensor(float(cfg.s_t_init)))
+        self.s_q = nn.Parameter(torch.tensor(float(cfg.s_q_init)))
+
+    def level(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        """Eq. 11 for (B,7) predictions against (B,7) ground truth, batch mean."""
+        t_err = (gt[:, :3] - pred[:, :3]).abs().sum(-1)
+        q_err = (_canonical(gt[:, 3:]) - _canonical(pred[:, 3:])).pow(2).sum(-1)
+        return (t_err * torch.exp(-self.s_t) + self.s_t + q_err * torch.exp(-self.s_q) + self.s_q).mean()
+
+    def forward(self, levels: torch.Tensor, final: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """levels: (B,L,7) coarse to fine; final: (B,7); gt: (B,7)."""
+        n = levels.shape[1]
+        alphas = self.cfg.alphas[-n:]
+        parts = {f"level{i}": self.level(levels[:, i], gt) for i in range(n)}
+        total = sum(a * parts[f"level{i}"] for i, a in enumerate(alphas)) + self.cfg.alpha_final * self.level(final, gt)
+        return total, {k: float(v.detach()) for k, v in parts.items()}

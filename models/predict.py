@@ -1,0 +1,36 @@
+"""Run the torch model over a sequence: validation during training and the reference for parity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from d3lvo_deploy.geometry import accumulate, change_frame
+from d3lvo_deploy.sequence import KittiSequence
+
+from .data import FrameLoader
+
+
+@torch.no_grad()
+def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None = None) -> np.ndarray:
+    """(N,4,4) cam0 poses, first identity; each frame is completed and encoded exactly once."""
+    model.eval()
+    seq = KittiSequence.open(seq_dir)
+    loader = FrameLoader(seq, model.cfg)
+    end = len(seq) if end is None else end
+    dev = next(model.parameters()).device
+    prev = None
+    rel = []
+    for i in range(start, end):
+        rgb = torch.from_numpy(loader.rgb(i)).permute(2, 0, 1)[None].to(dev)
+        depth = torch.from_numpy(loader.depth_input(i))[None, None].to(dev)
+        dense = model.complete(rgb, depth) if model.cfg.uses_depth else None
+        cur = model.encode(rgb, dense)
+        if prev is not None:
+            out = model.flow_pose(prev[0], cur[0], prev[1])
+            A2 = out["matrix"][0].double().cpu().numpy()
+            rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
+        prev = cur
+    return accumulate(np.array(rel).reshape(-1, 4, 4))

@@ -1,0 +1,164 @@
+"""Training loop: AdamW on frame pairs, periodic validation through the project's evaluator,
+atomic checkpoints. Runs as one process or under `torchrun --nproc_per_node N` (DDP; gloo on
+CPU, nccl on GPU): rank 0 logs, validates and saves.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.evaluation import evaluate
+from d3lvo_deploy.poses import Trajectory
+from d3lvo_deploy.sequence import KittiSequence
+
+from .checkpoint import load_checkpoint, save_checkpoint
+from .config import D3LVOConfig
+from .d3lvo import D3LVO
+from .data import AugmentConfig, PairDataset
+from .loss import LossConfig, PoseLoss
+from .predict import predict_sequence
+
+
+@dataclass
+class TrainConfig:
+    data: list[str]
+    out: str
+    val: list[str] = field(default_factory=list)
+    steps: int = 1000
+    batch_size: int = 4
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    grad_clip: float = 5.0
+    val_every: int = 500
+    ckpt_every: int = 100
+    seed: int = 0
+    num_workers: int = 0
+    device: str = "auto"
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+def _dist_info() -> tuple[int, int, bool]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    return rank, world, world > 1
+
+
+def _device(name: str, rank: int) -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        return torch.device("cuda", rank % max(torch.cuda.device_count(), 1))
+    return torch.device(name)
+
+
+def validate(model: D3LVO, seqs: list[str]) -> dict:
+    """t_rel/r_rel (when the path is long enough), ATE and RPE per validation sequence."""
+    out = {}
+    for s in seqs:
+        est = predict_sequence(model, s)
+        gt = KittiSequence.open(s).ground_truth
+        res = evaluate(gt, Trajectory.from_poses(est), name=Path(s).name)
+        out[Path(s).name] = {k: v for k, v in res.to_dict().items() if k in ("t_rel", "r_rel", "ate", "rpe_t", "rpe_r")}
+    return out
+
+
+def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
+    """L1 (m) against dense depth where the sequence has it (synthetic depth_2/), within 80 m."""
+    if "dense1" not in out:
+        return torch.zeros((), device=device)
+    pred = torch.cat([out["dense1"], out["dense2"]])
+    gt = torch.cat([batch["gt_depth1"], batch["gt_depth2"]]).to(device)
+    mask = (gt > 0) & (gt < 80)
+    if not mask.any():
+        return torch.zeros((), device=device)
+    return (pred - gt).abs()[mask].mean()
+
+
+def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
+          on_step: Callable[[int, dict], None] | None = None) -> dict:
+    """Train; returns the final record (step, losses, validation). `on_step` drives a progress bar."""
+    rank, world, distributed = _dist_info()
+    device = _device(tc.device, rank)
+    if distributed and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    torch.manual_seed(tc.seed + rank)
+
+    model = D3LVO(cfg).to(device)
+    criterion = PoseLoss(tc.loss).to(device)
+    params = list(model.parameters()) + list(criterion.parameters())
+    opt = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay)
+    step, history = 0, []
+    if resume:
+        ck = load_checkpoint(resume, expect=cfg)
+        model.load_state_dict(ck["model"])
+        criterion.load_state_dict(ck["loss"])
+        opt.load_state_dict(ck["optimizer"])
+        step, history = ck["step"], ck.get("history", [])
+
+    ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
+    data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
+    if len(data) == 0:
+        raise D3LVOInputError(None, "no training pairs: the --data sequences need at least 2 frames")
+    if distributed:
+        sampler = DistributedSampler(data, num_replicas=world, rank=rank, seed=tc.seed, drop_last=True)
+    else:
+        sampler = RandomSampler(data, generator=torch.Generator().manual_seed(tc.seed))
+    batch = min(tc.batch_size, max(len(data) // world, 1))
+    loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True)
+
+    record: dict = {}
+    epoch = step // max(len(loader), 1)
+    t0 = time.perf_counter()
+    while step < tc.steps:
+        data.epoch = epoch
+        if distributed:
+            sampler.set_epoch(epoch)
+        for b in loader:
+            if step >= tc.steps:
+                break
+            ddp_model.train()
+            out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device))
+            pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
+            comp = completion_loss(out, b, device)
+            loss = pose_loss + tc.loss.completion_weight * comp
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"loss became {float(loss)} at step {step}")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
+            opt.step()
+            step += 1
+            record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),
+                      "completion_l1": float(comp.detach()), "s_t": float(criterion.s_t.detach()),
+                      "s_q": float(criterion.s_q.detach()), **parts,
+                      "seconds": time.perf_counter() - t0}
+            if rank == 0:
+                if tc.val and (step % tc.val_every == 0 or step == tc.steps):
+                    record["val"] = validate(model, tc.val)
+                history.append(record)
+                if step % tc.ckpt_every == 0 or step == tc.steps:
+                    save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
+                                    step=step, history=history, train_config=_plain(tc))
+                if on_step is not None:
+                    on_step(step, record)
+        epoch += 1
+    if distributed:
+        dist.barrier()
+        dist.destroy_process_group()
+    return record
+
+
+def _plain(tc: TrainConfig) -> dict:
+    d = asdict(tc)
+    return {k: v for k, v in d.items() if not (isinstance(v, float) and math.isnan(v))}

@@ -1,0 +1,154 @@
+"""Augmentations keep poses consistent, training learns, checkpoints refuse what they cannot load, DDP runs."""
+
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, se3_inv
+from d3lvo_deploy.ipbasic import fill_in_fast
+from models.augment import flip_pose, roll_pose
+from models.checkpoint import load_checkpoint, save_checkpoint
+from models.config import D3LVOConfig
+from models.d3lvo import D3LVO
+
+K = np.array([[400.0, 0, 127.5], [0, 400.0, 40.0], [0, 0, 1]])
+W, H = 256, 80
+
+
+def _pix(K, X):
+    x = X @ K.T
+    return x[:, :2] / x[:, 2:]
+
+
+def _scene(seed=0):
+    rng = np.random.default_rng(seed)
+    X1 = np.c_[rng.uniform(-5, 5, 50), rng.uniform(-1, 1, 50), rng.uniform(8, 30, 50)]  # frame t-1
+    A = make_se3(axis_angle_to_rot([0.01, 0.05, -0.02]), [0.3, 0.05, 1.2])  # frame t in frame t-1
+    X2 = (np.c_[X1, np.ones(50)] @ se3_inv(A).T)[:, :3]
+    return X1, X2, A
+
+
+def test_flip_mirrors_the_pose():
+    """Flipping both images (u -> W-1-u) equals a camera with mirrored x, K' with cx' = W-1-cx, pose M A M."""
+    X1, X2, A = _scene()
+    u1, u2 = _pix(K, X1), _pix(K, X2)
+    Kf = K.copy()
+    Kf[0, 2] = W - 1 - K[0, 2]
+    Af = flip_pose(A)
+    M = np.diag([-1.0, 1, 1])
+    X1f = X1 @ M.T
+    X2f = (np.c_[X1f, np.ones(50)] @ se3_inv(Af).T)[:, :3]
+    np.testing.assert_allclose(_pix(Kf, X1f), np.c_[W - 1 - u1[:, 0], u1[:, 1]], atol=1e-9)
+    np.testing.assert_allclose(_pix(Kf, X2f), np.c_[W - 1 - u2[:, 0], u2[:, 1]], atol=1e-9)
+    # mirrored: sideways translation and yaw/roll change sign, forward motion and pitch do not
+    assert Af[0, 3] == pytest.approx(-A[0, 3]) and Af[2, 3] == pytest.approx(A[2, 3])
+    assert Af[0, 2] == pytest.approx(-A[0, 2]) and Af[1, 2] == pytest.approx(A[1, 2])
+
+
+def test_rotation_rolls_the_pose():
+    """cv2's image rotation about the principal point, applied to pixels, matches the rolled pose."""
+    X1, X2, A = _scene(1)
+    ang = 1.7
+    Mi = cv2.getRotationMatrix2D((K[0, 2], K[1, 2]), ang, 1.0)
+    rot = lambda u: u @ Mi[:, :2].T + Mi[:, 2]  # noqa: E731
+    Ar = roll_pose(A, ang)
+    from models.augment import roll_matrix
+
+    R = roll_matrix(ang)
+    X1r = X1 @ R.T
+    X2r = (np.c_[X1r, np.ones(50)] @ se3_inv(Ar).T)[:, :3]
+    np.testing.assert_allclose(_pix(K, X1r), rot(_pix(K, X1)), atol=1e-9)
+    np.testing.assert_allclose(_pix(K, X2r), rot(_pix(K, X2)), atol=1e-9)
+
+
+def test_ipbasic_fills_holes_and_keeps_near_points():
+    sparse = np.zeros((60, 80), np.float32)
+    sparse[20::4, ::4] = 12.0  # a flat wall sampled on a grid
+    dense = fill_in_fast(sparse)
+    assert np.all(dense > 0)
+    np.testing.assert_allclose(dense[24:56, 4:76], 12.0, atol=1e-3)
+    sparse[40, 40] = 5.0  # a near point next to far ones wins its neighbourhood
+    assert fill_in_fast(sparse)[40, 40] == pytest.approx(5.0, abs=0.5)
+
+
+def test_training_reduces_pose_error(small_synth, tmp_path):
+    from models.data import PairDataset
+    from models.train import TrainConfig, train
+
+    cfg = D3LVOConfig.small(height=64, width=224)
+    data = PairDataset([small_synth], cfg)
+    gt = torch.stack([data[i]["pose"] for i in range(len(data))])
+
+    def error(model):
+        model.eval()
+        with torch.no_grad():
+            b = [data[i] for i in range(len(data))]
+            cat = lambda k: torch.stack([x[k] for x in b])  # noqa: E731
+            out = model(cat("rgb1"), cat("rgb2"), cat("depth1"), cat("depth2"))
+        return float((out["pose"][:, :3] - gt[:, :3]).abs().sum(1).mean())
+
+    torch.manual_seed(0)
+    before = error(D3LVO(cfg))
+    ck = tmp_path / "ck.pt"
+    from models.data import AugmentConfig
+
+    tc = TrainConfig(data=[str(small_synth)], out=str(ck), steps=60, batch_size=5, lr=2e-3, ckpt_every=30,
+                     augment=AugmentConfig(flip=0, brightness=0, rotation_deg=0))
+    rec = train(cfg, tc)
+    assert rec["step"] == 60
+    model = D3LVO(cfg)
+    model.load_state_dict(load_checkpoint(ck, expect=cfg)["model"])
+    after = error(model)
+    print(f"mean translation L1 error on the training pairs: {before:.3f} m -> {after:.3f} m")
+    assert after < 0.5 * before
+
+
+def test_checkpoint_errors(tmp_path):
+    cfg = D3LVOConfig.small(height=64, width=224)
+    p = tmp_path / "ck.pt"
+    save_checkpoint(p, D3LVO(cfg), cfg, step=0)
+    with pytest.raises(D3LVOInputError, match="another model config.*mode"):
+        load_checkpoint(p, expect=D3LVOConfig.small(height=64, width=224, mode="rgb"))
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"hello")
+    with pytest.raises(D3LVOInputError, match="junk.pt.*not a PyTorch checkpoint"):
+        load_checkpoint(junk)
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {}}, other)
+    with pytest.raises(D3LVOInputError, match="not a D3LVO checkpoint"):
+        load_checkpoint(other)
+
+
+def test_resume_continues_the_step_count(small_synth, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
+                        "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1"],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
+                        "--steps", "3", "--preset", "small", "--batch-size", "1", "--resume", str(tmp_path / "a.pt")],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert load_checkpoint(tmp_path / "a.pt")["step"] == 3
+    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "b.pt"),
+                        "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume", str(tmp_path / "a.pt")],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 1 and "another model config" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ddp_two_cpu_processes(small_synth, tmp_path):
+    """torchrun --nproc_per_node 2 with gloo: both ranks step together, rank 0 writes the checkpoint."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                        "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "ddp.pt"),
+                        "--steps", "2", "--preset", "small", "--batch-size", "1", "--device", "cpu"],
+                       cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    ck = load_checkpoint(tmp_path / "ddp.pt")
+    assert ck["step"] == 2
