@@ -5,6 +5,8 @@ from __future__ import annotations
 import typer
 
 from .eval_cmd import eval_command
+from .export_cmd import export_command
+from .parity_cmd import parity_command
 from .synth_cmd import synth_command
 from .train_cmd import train_command
 
@@ -34,6 +36,8 @@ def root(version: bool = typer.Option(False, "--version", callback=_version, is_
 app.command("eval")(eval_command)
 app.command("synth")(synth_command)
 app.command("train")(train_command)
+app.command("export")(export_command)
+app.command("parity")(parity_command)
 
 
 def main() -> None:

@@ -49,6 +49,7 @@ def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None) -> dict
                       not (isinstance(v, tuple) and list(v) == ck["config"].get(k)))
         raise D3LVOInputError(path, f"checkpoint was made with another model config (differs in: {', '.join(diff)})")
     ck["config"] = cfg
+    ck["path"] = str(path)
     return ck
 
 
@@ -57,5 +58,9 @@ def build_model(ck: dict):
     from .d3lvo import D3LVO
 
     model = D3LVO(ck["config"])
-    model.load_state_dict(ck["model"])
+    try:
+        model.load_state_dict(ck["model"])
+    except RuntimeError as e:
+        first = str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else str(e)
+        raise D3LVOInputError(ck.get("path"), f"weights do not fit the model config ({first[:200]})") from None
     return model.eval()

@@ -17,8 +17,8 @@ from torch.utils.data import Dataset
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
-from d3lvo_deploy.ipbasic import fill_in_fast
-from d3lvo_deploy.projection import View, network_view, sparse_depth
+from d3lvo_deploy.frames import FramePreprocessor
+from d3lvo_deploy.projection import View
 from d3lvo_deploy.sequence import KittiSequence
 
 from .augment import flip_images, flip_pose, roll_pose, rotate_images
@@ -38,28 +38,23 @@ def pose_vector(A: np.ndarray) -> np.ndarray:
 
 
 class FrameLoader:
-    """Reads one frame of a sequence at the network resolution: what the runtime will see too."""
+    """Reads one frame of a sequence at the network resolution, through the runtime's preprocessor."""
 
     def __init__(self, seq: KittiSequence, cfg: D3LVOConfig):
         self.seq, self.cfg = seq, cfg
         h, w = seq.image(0).shape[:2]
-        self.view: View = network_view(w, h, cfg.width, cfg.height)
-        self.P = self.view.project_matrix(seq.calib.P_velo_to_image2)
-        self.K = self.view.project_matrix(seq.calib.K2)
+        self.pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
+        self.view: View = self.pre.view
+        self.K = self.pre.K
 
     def rgb(self, i: int) -> np.ndarray:
         img = self.seq.image(i)
         if img.shape[:2] != (self.view.src_height, self.view.src_width):
             raise D3LVOInputError(self.seq.image_path(i), f"size {img.shape[1]}x{img.shape[0]} differs from frame 0")
-        return self.view.apply_image(img).astype(np.float32) / 255.0
+        return self.pre.rgb(img)
 
     def depth_input(self, i: int) -> np.ndarray:
-        if self.cfg.depth_input == "none":
-            return np.zeros((self.cfg.height, self.cfg.width), np.float32)
-        d = sparse_depth(self.seq.scan(i), self.P, self.cfg.width, self.cfg.height)
-        if self.cfg.depth_input == "ipbasic":
-            d = fill_in_fast(d, max_depth=self.cfg.max_depth)
-        return d
+        return self.pre.depth(None if self.cfg.depth_input == "none" else self.seq.scan(i))
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"

@@ -1,0 +1,41 @@
+"""`d3lvo parity`: numerical agreement of the ONNX stages with the PyTorch checkpoint."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from .common import console, friendly_errors, out
+
+
+@friendly_errors
+def parity_command(
+    ckpt: Path = typer.Option(..., "--ckpt", help="The checkpoint the ONNX folder was exported from."),
+    onnx: Path = typer.Option(..., "--onnx", help="Folder written by `d3lvo export`."),
+    seq_dir: Path | None = typer.Option(None, "--seq-dir", help="KITTI-format frames (default: the real frames "
+                                        "in ../shared/data, else a synthetic sequence)."),
+    frames: int = typer.Option(3, "--frames", help="Frames to run (pairs = frames - 1)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the numbers and a pass flag as JSON."),
+) -> None:
+    """Compare torch and onnxruntime per stage output and along the chained pipeline; exit 1 on failure."""
+    from export.parity import POSE_R_TOL, POSE_T_TOL, STAGE_TOL, run_parity
+
+    rep = run_parity(ckpt, onnx, seq_dir, frames)
+    if as_json:
+        typer.echo(json.dumps(rep.to_dict(), indent=2))
+    else:
+        t = Table(title=f"torch vs onnxruntime on {rep.frames} frames of {rep.data}")
+        for c in ("stage", "output", "max abs", "max rel", f"ok (<= {STAGE_TOL:g} x max(1,|ref|))"):
+            t.add_column(c)
+        for stage, outs in rep.stages.items():
+            for name, d in outs.items():
+                t.add_row(stage, name, f"{d.max_abs:.2e}", f"{d.max_rel:.2e}", "yes" if d.ok else "[red]NO[/]")
+        out.print(t)
+        out.print(f"chained relative pose: {rep.chained_t_m:.2e} m (<= {POSE_T_TOL:g}), "
+                  f"{rep.chained_r_deg:.2e} deg (<= {POSE_R_TOL:g})", highlight=False)
+        out.print("[bold green]PASS[/]" if rep.passed else "[bold red]FAIL[/]")
+    if not rep.passed:
+        raise typer.Exit(1)

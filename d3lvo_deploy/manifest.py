@@ -1,0 +1,52 @@
+"""manifest.json of an exported model folder, and its verification before anything is run.
+
+The runtime refuses a folder whose files do not match the manifest (hash, input/output names,
+shapes): a tampered or mixed-up model would otherwise produce a plausible but wrong trajectory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from .errors import D3LVOInputError
+
+MANIFEST_FORMAT = "d3lvo-onnx"
+MANIFEST_VERSION = 1
+STANDARD_DOMAINS = ("", "ai.onnx")
+STAGES = ("completion", "encoder", "flowpose")
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
+    model_dir = Path(model_dir)
+    path = model_dir / "manifest.json"
+    if not path.is_file():
+        raise D3LVOInputError(model_dir, "no manifest.json: not a folder written by `d3lvo export`")
+    try:
+        m = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise D3LVOInputError(path, f"not valid JSON ({e.msg}, line {e.lineno})") from None
+    if not isinstance(m, dict) or m.get("format") != MANIFEST_FORMAT:
+        raise D3LVOInputError(path, f"not a D3LVO manifest (format must be {MANIFEST_FORMAT!r})")
+    if m.get("version") != MANIFEST_VERSION:
+        raise D3LVOInputError(path, f"manifest version {m.get('version')}, this runtime reads {MANIFEST_VERSION}")
+    stages = m.get("stages", {})
+    for name in ("encoder", "flowpose"):
+        if name not in stages:
+            raise D3LVOInputError(path, f"lists no {name} stage")
+    for name, st in stages.items():
+        f = model_dir / st["file"]
+        if not f.is_file():
+            raise D3LVOInputError(f, f"{name} model listed in the manifest is missing")
+        if verify_hashes and _sha256(f) != st["sha256"]:
+            raise D3LVOInputError(f, "sha256 differs from manifest.json (modified or from another export)")
+    return m

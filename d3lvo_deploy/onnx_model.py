@@ -1,0 +1,116 @@
+"""The exported stages behind onnxruntime sessions, checked against manifest.json.
+
+Arrays in and out are numpy float32 NCHW. `encode` returns a dict keyed by the manifest's output
+names; `flow_pose` maps frame t-1's encoder outputs (`feat_lK`, `invdepth_lK`) and frame t's
+(`feat_lK`) onto the flow+pose graph's inputs (`feat1_lK`, `feat2_lK`, `invdepth1_lK`).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from .errors import D3LVOInputError
+from .manifest import load_manifest
+
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
+OPT_LEVELS = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    provider: str = "cpu"
+    threads: int = 0  # 0: onnxruntime decides (all physical cores)
+    optimization: str = "all"
+    profile_dir: str | None = None
+
+
+def resolve_providers(name: str) -> list[str]:
+    if name not in PROVIDERS:
+        raise D3LVOInputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, not {name!r}")
+    wanted = PROVIDERS[name]
+    available = ort.get_available_providers()
+    if wanted not in available:
+        warnings.warn(f"{wanted} is not available in this onnxruntime build; falling back to CPU", stacklevel=2)
+        return ["CPUExecutionProvider"]
+    return [wanted, "CPUExecutionProvider"] if wanted != "CPUExecutionProvider" else [wanted]
+
+
+class StageModel:
+    def __init__(self, model_dir: str | Path, sc: SessionConfig = SessionConfig()):
+        self.dir = Path(model_dir)
+        self.manifest = load_manifest(self.dir)
+        self.config = self.manifest["model_config"]
+        self.depth_input = self.manifest["depth_input"]
+        self.height = self.manifest["input"]["height"]
+        self.width = self.manifest["input"]["width"]
+        providers = resolve_providers(sc.provider)
+        if sc.optimization not in OPT_LEVELS:
+            raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
+        self.sessions: dict[str, ort.InferenceSession] = {}
+        for name, st in self.manifest["stages"].items():
+            so = ort.SessionOptions()
+            so.graph_optimization_level = OPT_LEVELS[sc.optimization]
+            so.intra_op_num_threads = sc.threads
+            so.inter_op_num_threads = 1
+            so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            if sc.profile_dir:
+                os.makedirs(sc.profile_dir, exist_ok=True)
+                so.enable_profiling = True
+                so.profile_file_prefix = str(Path(sc.profile_dir) / name)
+            path = self.dir / st["file"]
+            try:
+                sess = ort.InferenceSession(str(path), so, providers=providers)
+            except Exception as e:  # onnxruntime raises its own exception types
+                raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+            self._check_io(path, sess, st)
+            self.sessions[name] = sess
+
+    @staticmethod
+    def _check_io(path: Path, sess: ort.InferenceSession, st: dict) -> None:
+        got_in = [(i.name, list(i.shape)) for i in sess.get_inputs()]
+        want_in = [(i["name"], i["shape"]) for i in st["inputs"]]
+        got_out = [o.name for o in sess.get_outputs()]
+        want_out = [o["name"] for o in st["outputs"]]
+        norm = lambda s: [d if isinstance(d, int) else "?" for d in s]  # noqa: E731
+        if [n for n, _ in got_in] != [n for n, _ in want_in] or got_out != want_out:
+            raise D3LVOInputError(path, "input/output names differ from manifest.json")
+        if [norm(s) for _, s in got_in] != [norm(s) for _, s in want_in]:
+            raise D3LVOInputError(path, "input shapes differ from manifest.json")
+
+    def output_names(self, stage: str) -> list[str]:
+        return [o.name for o in self.sessions[stage].get_outputs()]
+
+    def run(self, stage: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        outs = self.sessions[stage].run(None, feeds)
+        return dict(zip(self.output_names(stage), outs))
+
+    def complete(self, rgb: np.ndarray, sparse: np.ndarray) -> np.ndarray:
+        return self.run("completion", {"rgb": rgb, "sparse_depth": sparse})["dense_depth"]
+
+    def encode(self, rgb: np.ndarray, depth: np.ndarray | None) -> dict[str, np.ndarray]:
+        feeds = {"rgb": rgb}
+        if depth is not None:
+            feeds["depth"] = depth
+        return self.run("encoder", feeds)
+
+    def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        feeds = {}
+        for inp in self.sessions["flowpose"].get_inputs():
+            frame, key = inp.name.split("_", 1)  # feat1 / feat2 / invdepth1, then lK
+            src = prev if frame.endswith("1") else cur
+            feeds[inp.name] = src[f"{frame[:-1]}_{key}"]
+        return self.run("flowpose", feeds)
+
+    def end_profiling(self) -> list[str]:
+        return [s.end_profiling() for s in self.sessions.values()]

@@ -1,0 +1,177 @@
+"""`d3lvo export`: checkpoint -> completion.onnx, encoder.onnx, flowpose.onnx + manifest.json.
+
+Uses torch's TorchScript-based exporter (`dynamo=False`): it needs no extra package, freezes the
+static shapes we want (the adaptive pooling bins are computed at export size), and emits only
+standard ONNX ops for this model. Every graph is checked: `onnx.checker` with full_check, a walk
+over all nodes that refuses any non-standard domain, and an onnxruntime session that loads it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import onnx
+import torch
+
+import d3lvo_deploy
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
+from models.checkpoint import build_model, load_checkpoint
+from models.d3lvo import D3LVO
+
+from .stages import CompletionStage, EncoderStage, FlowPoseStage
+
+DEFAULT_OPSET = 17  # GridSample needs 16+
+
+
+@dataclass
+class ExportConfig:
+    out: Path
+    opset: int = DEFAULT_OPSET
+    height: int | None = None  # default: the checkpoint's config
+    width: int | None = None
+    dynamic_batch: bool = False
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def non_standard_nodes(model: onnx.ModelProto) -> list[str]:
+    """Every node (subgraphs included) whose domain is not the standard ONNX one."""
+    bad = []
+
+    def walk(graph):
+        for n in graph.node:
+            if n.domain not in STANDARD_DOMAINS:
+                bad.append(f"{n.op_type} (domain {n.domain!r})")
+            for a in n.attribute:
+                if a.g is not None and a.g.node:
+                    walk(a.g)
+                for g in a.graphs:
+                    walk(g)
+
+    walk(model.graph)
+    return bad
+
+
+def _io_spec(model: onnx.ModelProto) -> tuple[list[dict], list[dict]]:
+    def spec(v):
+        dims = [d.dim_value if d.dim_value else (d.dim_param or "?") for d in v.type.tensor_type.shape.dim]
+        return {"name": v.name, "shape": dims, "dtype": onnx.helper.tensor_dtype_to_np_dtype(v.type.tensor_type.elem_type).name}
+
+    return [spec(v) for v in model.graph.input], [spec(v) for v in model.graph.output]
+
+
+def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor, ...]]:
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(1, 3, h, w, generator=g)
+    sparse = torch.rand(1, 1, h, w, generator=g) * 60 * (torch.rand(1, 1, h, w, generator=g) > 0.93)
+    with torch.no_grad():
+        dense = model.complete(rgb, sparse) if model.cfg.uses_depth else None
+        enc = EncoderStage(model)
+        enc_out = enc(rgb, dense) if dense is not None else enc(rgb)
+    n = len(model.cfg.flow_levels)
+    feats = enc_out[:n]
+    depths = enc_out[n:]
+    return {
+        "completion": (rgb, sparse),
+        "encoder": (rgb, dense) if dense is not None else (rgb,),
+        "flowpose": (*feats, *feats, *depths),
+    }
+
+
+def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> None:
+    names = list(module.input_names) + list(module.output_names)
+    dynamic = {n: {0: "batch"} for n in names} if dynamic_batch else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below
+        torch.onnx.export(module, args, str(path), input_names=module.input_names, output_names=module.output_names,
+                          opset_version=opset, dynamo=False, do_constant_folding=True, dynamic_axes=dynamic)
+
+
+def check_graph(path: Path) -> onnx.ModelProto:
+    model = onnx.load(str(path))
+    onnx.checker.check_model(model, full_check=True)
+    bad = non_standard_nodes(model)
+    if bad:
+        raise RuntimeError(f"{path.name} uses non-standard ops: {sorted(set(bad))}")
+    import onnxruntime as ort
+
+    ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return model
+
+
+def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict:
+    """Export the three stages and write manifest.json; returns the manifest."""
+    ck = load_checkpoint(ckpt)
+    cfg = ck["config"]
+    h, w = ec.height or cfg.height, ec.width or cfg.width
+    if h % 16 or w % 16:
+        raise D3LVOInputError(None, f"--height/--width {w}x{h} must be divisible by 16")
+    if ec.opset < 16:
+        raise D3LVOInputError(None, f"--opset {ec.opset}: GridSample (bilinear warping) needs opset 16 or newer")
+    cfg = replace(cfg, height=h, width=w)
+    model = build_model({**ck, "config": cfg})
+    out = Path(ec.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise D3LVOInputError(out, f"output folder is not writable ({e.strerror})") from None
+
+    stages = {"completion": CompletionStage(model), "encoder": EncoderStage(model), "flowpose": FlowPoseStage(model)}
+    if not cfg.learned_completion:
+        del stages["completion"]  # identity (rgb_sparse), IP-Basic in numpy, or no depth (rgb)
+    inputs = _sample_inputs(model, h, w)
+    manifest_stages = {}
+    for name, module in stages.items():
+        path = out / f"{name}.onnx"
+        _export_one(module.eval(), inputs[name], path, ec.opset, ec.dynamic_batch)
+        m = onnx.load(str(path))
+        meta = {"d3lvo_stage": name, "d3lvo_format": MANIFEST_FORMAT, "d3lvo_version": d3lvo_deploy.__version__,
+                "d3lvo_config": json.dumps(cfg.to_dict()), "d3lvo_input_size": f"{w}x{h}"}
+        for k, v in meta.items():
+            m.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
+        onnx.save(m, str(path))
+        m = check_graph(path)
+        ins, outs = _io_spec(m)
+        manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs}
+        if progress is not None:
+            progress(name)
+
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "version": MANIFEST_VERSION,
+        "package_version": d3lvo_deploy.__version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "opset": ec.opset,
+        "precision": "fp32",
+        "dynamic_batch": ec.dynamic_batch,
+        "model_config": cfg.to_dict(),
+        "depth_input": cfg.depth_input,
+        "input": {
+            "width": w, "height": h,
+            "rgb": "float32 RGB in [0, 1], NCHW; ImageNet mean/std normalisation happens inside the graphs",
+            "rgb_mean": list(cfg.rgb_mean), "rgb_std": list(cfg.rgb_std),
+            "depth": "float32 metres, NCHW, 0 = no LiDAR return",
+            "camera_crop": "bottom-centre 1216x352 crop of image_2 (smaller images: largest bottom-centre crop "
+                           "of the input aspect), resized to width x height; d3lvo_deploy.projection.network_view",
+        },
+        "pose": "T(t-1 -> t) of the image_2 camera (frame t in frame t-1 coordinates); translation m, quaternion w,x,y,z",
+        "checkpoint": {"sha256": sha256(Path(ckpt)), "step": ck.get("step")},
+        "stages": manifest_stages,
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    return manifest

@@ -1,0 +1,165 @@
+"""`d3lvo parity`: torch and onnxruntime on the same real-format frames, stage by stage and chained.
+
+Stage check: each ONNX stage gets exactly the inputs the torch stage got, so its error is its own.
+Chained check: each side runs its own pipeline end to end (ORT completion feeds ORT encoder...),
+and the relative poses are compared in metres and degrees, as a user would see them.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.frames import FramePreprocessor
+from d3lvo_deploy.geometry import relative, rotation_angle_precise
+from d3lvo_deploy.onnx_model import SessionConfig, StageModel
+from d3lvo_deploy.sequence import KittiSequence
+from models.checkpoint import build_model, load_checkpoint
+from models.config import D3LVOConfig
+
+from .onnx_export import sha256
+
+STAGE_TOL = 1e-4  # |torch - ort| <= STAGE_TOL * max(1, |torch|): absolute for small values, relative for large
+POSE_T_TOL = 1e-4  # m
+POSE_R_TOL = 1e-3  # deg
+
+
+@dataclass
+class Diff:
+    max_abs: float = 0.0
+    max_rel: float = 0.0
+    ok: bool = True
+
+    def update(self, ref: np.ndarray, got: np.ndarray) -> None:
+        err = np.abs(ref.astype(np.float64) - got.astype(np.float64))
+        mag = np.abs(ref.astype(np.float64))
+        self.max_abs = max(self.max_abs, float(err.max(initial=0.0)))
+        self.max_rel = max(self.max_rel, float((err / np.maximum(mag, 1e-6)).max(initial=0.0)))
+        self.ok = self.ok and bool(np.all(err <= STAGE_TOL * np.maximum(1.0, mag)))
+
+
+@dataclass
+class ParityReport:
+    frames: int
+    data: str
+    stages: dict[str, dict[str, Diff]] = field(default_factory=dict)
+    chained_t_m: float = 0.0
+    chained_r_deg: float = 0.0
+
+    @property
+    def passed(self) -> bool:
+        stage_ok = all(d.ok for s in self.stages.values() for d in s.values())
+        return stage_ok and self.chained_t_m <= POSE_T_TOL and self.chained_r_deg <= POSE_R_TOL
+
+    def to_dict(self) -> dict:
+        return {
+            "pass": self.passed, "frames": self.frames, "data": self.data,
+            "tolerances": {"stage_abs_or_rel": STAGE_TOL, "pose_t_m": POSE_T_TOL, "pose_r_deg": POSE_R_TOL},
+            "stages": {s: {o: vars(d) for o, d in outs.items()} for s, outs in self.stages.items()},
+            "chained": {"translation_m": self.chained_t_m, "rotation_deg": self.chained_r_deg},
+        }
+
+
+def find_real_frames() -> Path | None:
+    """The 20 real KITTI frames in ../shared/data, looked for beside the repo and the working dir."""
+    rel = Path("shared") / "data" / "kitti_raw_snippet" / "sequences" / "r0926"
+    for base in (Path(__file__).resolve().parents[2], Path.cwd().parent, Path.cwd()):
+        if (base / rel).is_dir():
+            return base / rel
+    return None
+
+
+def _torch_model(ckpt: Path, manifest: dict):
+    ck = load_checkpoint(ckpt)
+    cfg = D3LVOConfig.from_dict(manifest["model_config"])
+    same = {k: v for k, v in cfg.to_dict().items() if k not in ("height", "width")}
+    mine = {k: v for k, v in ck["config"].to_dict().items() if k not in ("height", "width")}
+    if same != mine:
+        raise D3LVOInputError(ckpt, "the ONNX folder was exported with another model config")
+    if manifest.get("checkpoint", {}).get("sha256") not in (None, sha256(Path(ckpt))):
+        raise D3LVOInputError(ckpt, "the ONNX folder was exported from another checkpoint (sha256 differs)")
+    return build_model({**ck, "config": cfg})
+
+
+@torch.no_grad()
+def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | None = None, frames: int = 3,
+               sc: SessionConfig = SessionConfig()) -> ParityReport:
+    ort_model = StageModel(onnx_dir, sc)
+    model = _torch_model(Path(ckpt), ort_model.manifest)
+    tmp = None
+    if seq_dir is None:
+        seq_dir = find_real_frames()
+    if seq_dir is None:
+        from d3lvo_deploy.synth.generator import SynthConfig, generate
+
+        tmp = tempfile.TemporaryDirectory(prefix="d3lvo-parity-")
+        seq_dir = generate(Path(tmp.name) / "seq", SynthConfig(frames=frames, seed=123))
+    seq = KittiSequence.open(seq_dir)
+    n = min(frames, len(seq))
+    if n < 2:
+        raise D3LVOInputError(seq_dir, "parity needs at least 2 frames")
+    h, w = seq.image(0).shape[:2]
+    cfg = model.cfg
+    pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
+    rep = ParityReport(frames=n, data=str(seq_dir))
+    diff = lambda stage, name: rep.stages.setdefault(stage, {}).setdefault(name, Diff())  # noqa: E731
+
+    prev_t = prev_o = None
+    chain_t, chain_o = [], []
+    for i in range(n):
+        rgb = pre.rgb(seq.image(i)).transpose(2, 0, 1)[None].copy()
+        depth = pre.depth(seq.scan(i) if cfg.uses_depth else None)[None, None].copy()
+        t_rgb, t_depth = torch.from_numpy(rgb), torch.from_numpy(depth)
+        # stage: completion
+        if "completion" in ort_model.sessions:
+            dense_t = model.complete(t_rgb, t_depth)
+            diff("completion", "dense_depth").update(dense_t.numpy(), ort_model.complete(rgb, depth))
+            dense_o = ort_model.complete(rgb, depth)
+        else:
+            dense_t, dense_o = (t_depth, depth) if cfg.uses_depth else (None, None)
+        # stage: encoder (same inputs), then each side's own chain
+        enc_names = ort_model.output_names("encoder")
+        enc_t_list = _encoder_outputs(model, t_rgb, dense_t)
+        enc_t = dict(zip(enc_names, [x.numpy() for x in enc_t_list]))
+        enc_same = ort_model.encode(rgb, None if dense_t is None else dense_t.numpy())
+        for k in enc_names:
+            diff("encoder", k).update(enc_t[k], enc_same[k])
+        enc_o = ort_model.encode(rgb, dense_o)
+        if prev_t is not None:
+            fp_t = _flowpose_outputs(model, prev_t, enc_t)
+            fp_same = ort_model.flow_pose(prev_t, enc_t)
+            for k in fp_t:
+                diff("flowpose", k).update(fp_t[k], fp_same[k])
+            chain_t.append(fp_t["matrix"][0].astype(np.float64))
+            chain_o.append(ort_model.flow_pose(prev_o, enc_o)["matrix"][0].astype(np.float64))
+        prev_t, prev_o = enc_t, enc_o
+    E = relative(np.array(chain_t), np.array(chain_o))
+    rep.chained_t_m = float(np.linalg.norm(E[:, :3, 3], axis=1).max())
+    rep.chained_r_deg = float(np.degrees(rotation_angle_precise(E[:, :3, :3])).max())
+    if tmp is not None:
+        tmp.cleanup()
+    return rep
+
+
+def _encoder_outputs(model, rgb, dense) -> list[torch.Tensor]:
+    from .stages import EncoderStage
+
+    enc = EncoderStage(model)
+    return list(enc(rgb, dense) if dense is not None else enc(rgb))
+
+
+def _flowpose_outputs(model, prev: dict, cur: dict) -> dict[str, np.ndarray]:
+    from .stages import FlowPoseStage
+
+    fp = FlowPoseStage(model)
+    args = []
+    for name in fp.input_names:
+        frame, key = name.split("_", 1)
+        src = prev if frame.endswith("1") else cur
+        args.append(torch.from_numpy(src[f"{frame[:-1]}_{key}"]))
+    return dict(zip(fp.output_names, [x.numpy() for x in fp(*args)]))
