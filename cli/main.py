@@ -7,6 +7,7 @@ import typer
 from .eval_cmd import eval_command
 from .export_cmd import export_command
 from .parity_cmd import parity_command
+from .run_cmd import run_command
 from .synth_cmd import synth_command
 from .train_cmd import train_command
 
@@ -38,6 +39,7 @@ app.command("synth")(synth_command)
 app.command("train")(train_command)
 app.command("export")(export_command)
 app.command("parity")(parity_command)
+app.command("run")(run_command)
 
 
 def main() -> None:

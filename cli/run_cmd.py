@@ -1,0 +1,123 @@
+"""`d3lvo run`: the ONNX pipeline over a KITTI-format sequence, poses written as they come."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from d3lvo_deploy.errors import D3LVOInputError
+
+from .common import console, friendly_errors, out
+from .progress import frame_progress
+
+
+def resolve_model_dir(onnx: Path | None) -> Path:
+    if onnx is not None:
+        return onnx
+    from d3lvo_deploy.bundled import bundled_model_dir
+
+    return bundled_model_dir()
+
+
+def latency_table(stats: dict) -> Table:
+    t = Table(title="latency per frame (ms)")
+    for c in ("stage", "mean", "p90", "max"):
+        t.add_column(c, justify="right")
+    for k in ("read", "project", "completion", "encoder", "flowpose", "total"):
+        if k in stats:
+            s = stats[k]
+            t.add_row(k, f"{s['mean']:.1f}", f"{s['p90']:.1f}", f"{s['max']:.1f}")
+    return t
+
+
+@friendly_errors
+def run_command(
+    seq_dir: Path | None = typer.Option(None, "--seq-dir", help="KITTI odometry sequence folder."),
+    kitti_root: Path | None = typer.Option(None, "--kitti-root", help="KITTI odometry root (sequences/, poses/)."),
+    sequence: str | None = typer.Option(None, "--sequence", help="Sequence id under --kitti-root, e.g. 09."),
+    out_path: Path = typer.Option(..., "--out", help="Trajectory file to write (cam0 poses, first = identity)."),
+    onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
+    fmt: str = typer.Option("kitti", "--format", help="kitti | tum."),
+    start: int = typer.Option(0, "--start", help="First frame."),
+    end: int | None = typer.Option(None, "--end", help="One past the last frame."),
+    resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its last written pose."),
+    gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
+    plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
+    provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
+    threads: int = typer.Option(0, "--threads", help="onnxruntime intra-op threads (0: all cores)."),
+    optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
+    realtime: bool = typer.Option(False, "--realtime", help="Pace frames by times.txt, like a live 10 Hz sensor."),
+) -> None:
+    """Estimate the trajectory of a sequence with the ONNX stages (no torch needed)."""
+    from d3lvo_deploy.onnx_model import SessionConfig
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.sequence import KittiSequence
+
+    if (seq_dir is None) == (kitti_root is None):
+        raise D3LVOInputError(None, "give either --seq-dir DIR or --kitti-root R --sequence NN")
+    if kitti_root is not None:
+        if sequence is None:
+            raise D3LVOInputError(kitti_root, "--kitti-root needs --sequence (e.g. 09)")
+        seq = KittiSequence.from_kitti_root(kitti_root, sequence)
+    else:
+        seq = KittiSequence.open(seq_dir, gt=gt)
+    if gt is not None and kitti_root is not None:
+        seq = KittiSequence.open(seq.root, gt=gt)
+    sc = SessionConfig(provider=provider, threads=threads, optimization=optimization)
+    model_dir = resolve_model_dir(onnx)
+    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, realtime=realtime)
+    with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
+        warnings.simplefilter("always")
+        task = bar.add_task("run", total=(end or len(seq)) - start, rate="")
+
+        def tick(done: int, total: int, ms: float) -> None:
+            bar.update(task, completed=done, total=total, rate=f"{1000.0 / max(ms, 1e-6):.1f} frames/s")
+
+        summary = run_sequence(seq, model_dir, rc, sc, progress=tick)
+    seen = set()
+    for w in caught:
+        msg = str(w.message)
+        if msg not in seen:
+            seen.add(msg)
+            console.print(f"[yellow]warning[/] {msg}", highlight=False)
+    if summary.resumed_from:
+        console.print(f"resumed after {summary.resumed_from} poses already in {out_path}", highlight=False)
+    out.print(latency_table(summary.stats()))
+    out.print(f"{summary.frames} poses in {out_path} ({fmt}, cam0, first pose identity)", highlight=False)
+    _score(seq, out_path, fmt, start, end, plot)
+
+
+def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None) -> None:
+    import numpy as np
+
+    from d3lvo_deploy.evaluation import evaluate
+    from d3lvo_deploy.geometry import relative
+    from d3lvo_deploy.plot import plot_trajectories
+    from d3lvo_deploy.poses import Trajectory, read_poses
+
+    from .eval_cmd import report_table
+
+    est = read_poses(out_path, fmt)
+    gt = seq.ground_truth
+    if gt is None:
+        console.print("no ground truth for this sequence: no metrics", highlight=False)
+        if plot is not None:
+            plot_trajectories(plot, {"estimate": est.poses}, title=f"{seq.root.name} (no ground truth)")
+            console.print(f"plot written to {plot}", highlight=False)
+        return
+    stop = len(seq) if end is None else end
+    g = gt.poses[start:stop]
+    res = evaluate(Trajectory.from_poses(relative(g[0], g)), Trajectory.from_poses(est.poses), name=seq.root.name)
+    from d3lvo_deploy.evaluation import EvalReport
+
+    for note in res.notes:
+        console.print(f"[yellow]note[/] {note}", highlight=False)
+    out.print(report_table(EvalReport([res], "none")))
+    if plot is not None:
+        plot_trajectories(plot, {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
+                          title=f"{seq.root.name}: ATE {res.ate:.2f} m")
+        console.print(f"plot written to {plot}", highlight=False)
+    _ = np  # keep numpy import local to this helper

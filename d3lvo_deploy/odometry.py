@@ -1,0 +1,124 @@
+"""Streaming odometry for robot integration: `Odometry(model_dir, calib).step(image, points) -> pose`.
+
+Each frame is preprocessed, completed and encoded exactly once; its encoder outputs are kept as
+frame t-1 of the next pair. Poses are cam0 poses (KITTI convention), first frame = identity.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .calib import Calib, parse_calib
+from .errors import D3LVOInputError
+from .frames import FramePreprocessor
+from .geometry import change_frame
+from .onnx_model import SessionConfig, StageModel
+
+STAGES = ("project", "completion", "encoder", "flowpose")
+
+
+class ScanWarning(UserWarning):
+    """A scan was empty or had NaN points; the documented fallback was used."""
+
+
+def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
+    """Drop non-finite points. An empty result is allowed: the frame then has no LiDAR depth and
+    the completion stage works from the image alone (documented fallback), with a warning."""
+    if points is None:
+        return np.zeros((0, 4), np.float32)
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise D3LVOInputError(None, f"{source}: points must be an (N,3) or (N,4) array, got shape {pts.shape}")
+    finite = np.all(np.isfinite(pts[:, :3]), axis=1)
+    if not finite.all():
+        warnings.warn(f"{source}: dropped {int((~finite).sum())} of {len(pts)} points with NaN/inf", ScanWarning,
+                      stacklevel=3)
+        pts = pts[finite]
+    if len(pts) == 0:
+        warnings.warn(f"{source}: no LiDAR points; this frame runs without depth input", ScanWarning, stacklevel=3)
+    return pts
+
+
+@dataclass
+class FrameTiming:
+    ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def total(self) -> float:
+        return sum(self.ms.values())
+
+
+class Odometry:
+    """Minimal robot-facing API. `calib` is a Calib or a path to a KITTI calib file."""
+
+    def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
+                 model: StageModel | None = None):
+        self.model = model if model is not None else StageModel(model_dir, sc)
+        self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
+        self.pre: FramePreprocessor | None = None
+        self.last_timing = FrameTiming()
+        self.reset()
+
+    def reset(self, start_pose: np.ndarray | None = None) -> None:
+        """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
+        self._prev: dict[str, np.ndarray] | None = None
+        self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
+        self.relative = np.eye(4)
+        self.frames = 0
+
+    def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
+        h, w = image.shape[:2]
+        if self.pre is None:
+            self.pre = FramePreprocessor.create(self.calib, w, h, self.model.width, self.model.height,
+                                                self.model.depth_input, self.model.config["max_depth"])
+        elif (w, h) != (self.pre.view.src_width, self.pre.view.src_height):
+            raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were "
+                                        f"{self.pre.view.src_width}x{self.pre.view.src_height}")
+        return self.pre
+
+    def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Frame -> encoder outputs (the per-frame half of the work)."""
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
+        t = {}
+        t0 = time.perf_counter()
+        pre = self._preprocessor(image)
+        rgb = pre.rgb(image).transpose(2, 0, 1)[None].copy()
+        depth = pre.depth(clean_scan(points) if self.model.depth_input != "none" else None)[None, None].copy()
+        t["project"] = (time.perf_counter() - t0) * 1000
+        t0 = time.perf_counter()
+        if "completion" in self.model.sessions:
+            depth = self.model.complete(rgb, depth)
+        t["completion"] = (time.perf_counter() - t0) * 1000
+        t0 = time.perf_counter()
+        enc = self.model.encode(rgb, depth if self.model.depth_input != "none" else None)
+        t["encoder"] = (time.perf_counter() - t0) * 1000
+        self.last_timing = FrameTiming(t)
+        return enc
+
+    def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
+        """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
+        enc = self.encode(image, points)
+        t0 = time.perf_counter()
+        if self._prev is not None:
+            out = self.model.flow_pose(self._prev, enc)
+            A2 = out["matrix"][0].astype(np.float64)
+            if not np.all(np.isfinite(A2)):
+                raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
+            self.relative = change_frame(A2, self.calib.T_cam0_cam2)
+            self.pose = self.pose @ self.relative
+        self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
+        self._prev = enc
+        self.frames += 1
+        return self.pose.copy()
+
+    def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray) -> None:
+        """Resume: take frame t-1 and its known pose without estimating anything."""
+        self._prev = self.encode(image, points)
+        self.pose = np.array(pose, dtype=np.float64)
+        self.frames += 1

@@ -1,0 +1,132 @@
+"""ONNX export: standard ops only, checker, manifest, parity with torch, and clear errors."""
+
+import json
+import shutil
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from conftest import make_checkpoint
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.manifest import load_manifest
+from d3lvo_deploy.onnx_model import StageModel
+from export.onnx_export import ExportConfig, export_checkpoint, non_standard_nodes
+from export.parity import run_parity
+from models.checkpoint import save_checkpoint
+from models.config import D3LVOConfig
+from models.d3lvo import D3LVO
+
+runner = CliRunner()
+
+
+def _ckpt(tmp_path, name="ck.pt", **kw):
+    p = make_checkpoint(tmp_path / name, **kw)
+    return p, None
+
+
+@pytest.fixture(scope="module")
+def exported(small_model):
+    ck, out = small_model
+    return ck, out, json.loads((out / "manifest.json").read_text())
+
+
+def test_three_standard_graphs_with_manifest(exported):
+    ck, out, m = exported
+    assert set(m["stages"]) == {"completion", "encoder", "flowpose"}
+    for st in m["stages"].values():
+        model = onnx.load(str(out / st["file"]))
+        onnx.checker.check_model(model, full_check=True)
+        assert non_standard_nodes(model) == []
+        assert all(n.domain in ("", "ai.onnx") for n in model.graph.node)
+        assert {o.domain for o in model.opset_import} <= {"", "ai.onnx"}
+        meta = {p.key: p.value for p in model.metadata_props}
+        assert json.loads(meta["d3lvo_config"])["width"] == 224
+    assert m["checkpoint"]["step"] == 7 and m["depth_input"] == "sparse"
+    assert m["stages"]["flowpose"]["outputs"][-1]["name"] == "matrix"
+    assert m["stages"]["flowpose"]["outputs"][-1]["shape"] == [1, 4, 4]
+    load_manifest(out)  # verifies hashes
+
+
+def test_walker_catches_custom_domains():
+    node = onnx.helper.make_node("Correlation", ["a"], ["b"], domain="com.example")
+    g = onnx.helper.make_graph([node], "g", [onnx.helper.make_tensor_value_info("a", onnx.TensorProto.FLOAT, [1])],
+                               [onnx.helper.make_tensor_value_info("b", onnx.TensorProto.FLOAT, [1])])
+    assert non_standard_nodes(onnx.helper.make_model(g)) == ["Correlation (domain 'com.example')"]
+
+
+def test_parity_reduced_size(exported, small_synth):
+    ck, out, _ = exported
+    rep = run_parity(ck, out, small_synth, frames=3)
+    assert rep.passed, rep.to_dict()
+    assert rep.stages["flowpose"]["matrix"].max_abs < 1e-4
+    assert rep.chained_t_m < 1e-4 and rep.chained_r_deg < 1e-3
+
+
+@pytest.mark.parametrize("kw", [dict(mode="rgb"), dict(mode="rgb_sparse"), dict(completion="ipbasic")])
+def test_parity_other_modes(tmp_path, small_synth, kw):
+    ck, cfg = _ckpt(tmp_path, **kw)
+    m = export_checkpoint(ck, ExportConfig(out=tmp_path / "onnx"))
+    assert "completion" not in m["stages"]
+    rep = run_parity(ck, tmp_path / "onnx", small_synth, frames=2)
+    assert rep.passed, rep.to_dict()
+
+
+def test_dynamic_batch(tmp_path):
+    ck, cfg = _ckpt(tmp_path)
+    export_checkpoint(ck, ExportConfig(out=tmp_path / "onnx", dynamic_batch=True))
+    sm = StageModel(tmp_path / "onnx")
+    rgb = np.random.rand(3, 3, 64, 224).astype(np.float32)
+    depth = np.zeros((3, 1, 64, 224), np.float32)
+    enc = sm.encode(rgb, sm.complete(rgb, depth))
+    assert enc["feat_l1"].shape[0] == 3
+    assert sm.flow_pose(enc, enc)["matrix"].shape == (3, 4, 4)
+
+
+@pytest.mark.slow
+def test_parity_at_paper_resolution(tmp_path):
+    """1216x352 as in the paper (the default config), on real frames when present."""
+    torch.manual_seed(0)
+    cfg = D3LVOConfig()
+    save_checkpoint(tmp_path / "full.pt", D3LVO(cfg).eval(), cfg, step=0)
+    export_checkpoint(tmp_path / "full.pt", ExportConfig(out=tmp_path / "onnx"))
+    rep = run_parity(tmp_path / "full.pt", tmp_path / "onnx", frames=2)
+    assert rep.passed, rep.to_dict()
+
+
+def test_tampered_and_mismatched(exported, tmp_path):
+    ck, out, _ = exported
+    bad = tmp_path / "bad"
+    shutil.copytree(out, bad)
+    with open(bad / "encoder.onnx", "ab") as fh:
+        fh.write(b"\0")
+    with pytest.raises(D3LVOInputError, match="encoder.onnx.*sha256"):
+        StageModel(bad)
+    other, _ = _ckpt(tmp_path, name="other.pt", mode="rgb")
+    with pytest.raises(D3LVOInputError, match="another model config"):
+        run_parity(other, out, frames=2)
+
+
+def test_cli_export_errors(tmp_path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not torch")
+    r = runner.invoke(app, ["export", "--ckpt", str(junk), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "not a PyTorch checkpoint" in r.output
+    ck, _ = _ckpt(tmp_path)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(blocker / "sub")])
+    assert r.exit_code == 1 and "not writable" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--height", "100"])
+    assert r.exit_code == 1 and "divisible by 16" in r.output
+
+
+def test_cli_parity_json(exported, small_synth):
+    ck, out, _ = exported
+    r = runner.invoke(app, ["parity", "--ckpt", str(ck), "--onnx", str(out), "--seq-dir", str(small_synth), "--json"])
+    assert r.exit_code == 0, r.output
+    data = json.loads(r.stdout)
+    assert data["pass"] is True and data["chained"]["translation_m"] < 1e-4

@@ -1,0 +1,175 @@
+"""The torch-free runtime: ONNX trajectory = torch trajectory, resume after a kill, bad input handling."""
+
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
+
+import numpy as np
+import pytest
+from conftest import ROOT, shared_path
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.odometry import Odometry, ScanWarning
+from d3lvo_deploy.pipeline import RunConfig, run_sequence
+from d3lvo_deploy.poses import read_poses
+from d3lvo_deploy.sequence import KittiSequence
+
+runner = CliRunner()
+
+
+def test_onnx_trajectory_equals_torch(small_model, small_synth, tmp_path):
+    from models.checkpoint import build_model, load_checkpoint
+    from models.predict import predict_sequence
+
+    ck, onnx_dir = small_model
+    torch_traj = predict_sequence(build_model(load_checkpoint(ck)), small_synth)
+    run_sequence(KittiSequence.open(small_synth), onnx_dir, RunConfig(out=tmp_path / "p.txt"))
+    est = read_poses(tmp_path / "p.txt").poses
+    assert est.shape == torch_traj.shape == (6, 4, 4)
+    np.testing.assert_allclose(est[0], np.eye(4))
+    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
+    np.testing.assert_allclose(est[:, :3, :3], torch_traj[:, :3, :3], atol=1e-5)
+
+
+def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "p.txt"))
+    odo = Odometry(onnx_dir, small_synth / "calib.txt")
+    poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))]
+    np.testing.assert_array_equal(np.array(poses)[:, :3], read_poses(tmp_path / "p.txt").poses[:, :3])
+    odo.reset()
+    np.testing.assert_array_equal(odo.step(seq.image(3), seq.scan(3)), np.eye(4))
+
+
+def test_real_frames_give_20_finite_poses(small_model, tmp_path):
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "real.txt"))
+    p = read_poses(tmp_path / "real.txt").poses
+    assert p.shape == (20, 4, 4) and np.all(np.isfinite(p))
+    np.testing.assert_allclose(p[0], np.eye(4))
+
+
+def test_resume_after_partial_run_is_identical(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "full.txt"))
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "part.txt", end=3))
+    with open(tmp_path / "part.txt", "a") as fh:
+        fh.write("0.5 0.1 0")  # a line cut mid-write by the interruption
+    s = run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "part.txt", resume=True))
+    assert s.resumed_from == 3
+    assert (tmp_path / "part.txt").read_text() == (tmp_path / "full.txt").read_text()
+
+
+def test_killed_run_resumes_to_the_same_file(small_model, small_synth, tmp_path):
+    """A real SIGKILL mid-run (paced at 10 Hz by --realtime), then --resume."""
+    _, onnx_dir = small_model
+    seq_dir = tmp_path / "seq"
+    shutil.copytree(small_synth, seq_dir)
+    full = tmp_path / "full.txt"
+    assert runner.invoke(app, ["run", "--seq-dir", str(seq_dir), "--onnx", str(onnx_dir), "--out", str(full)]).exit_code == 0
+    out = tmp_path / "killed.txt"
+    cmd = [sys.executable, "-m", "cli.main", "run", "--seq-dir", str(seq_dir), "--onnx", str(onnx_dir), "--out", str(out)]
+    proc = subprocess.Popen(cmd + ["--realtime"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and (not out.exists() or out.read_text().count("\n") < 2):
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    written = out.read_text().count("\n")
+    assert 2 <= written < 6, "the run should have been killed part-way"
+    r = subprocess.run(cmd + ["--resume"], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert out.read_text() == full.read_text()
+
+
+def test_frame_range_and_tum(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "full.txt"))
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "r.tum", fmt="tum", start=2, end=5))
+    t = read_poses(tmp_path / "r.tum")
+    assert len(t) == 3
+    np.testing.assert_allclose(t.timestamps, [0.2, 0.3, 0.4], atol=1e-6)
+    full = read_poses(tmp_path / "full.txt").poses
+    # frames 2..4 re-based on frame 2: same relative motions as in the full run
+    expect = np.linalg.inv(full[2]) @ full[2:5]
+    np.testing.assert_allclose(t.poses, expect, atol=1e-6)
+
+
+def test_scan_fallbacks_warn(small_model, small_synth):
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(onnx_dir, seq.calib)
+    odo.step(seq.image(0), seq.scan(0))
+    bad = seq.scan(1).copy()
+    bad[::3, 0] = np.nan
+    with pytest.warns(ScanWarning, match="NaN"):
+        p = odo.step(seq.image(1), bad)
+    with pytest.warns(ScanWarning, match="no LiDAR points"):
+        p = odo.step(seq.image(2), np.zeros((0, 4), np.float32))
+    assert np.all(np.isfinite(p))
+    with pytest.raises(D3LVOInputError, match="earlier frames were 620x188"):
+        odo.step(np.zeros((100, 200, 3), np.uint8), seq.scan(3))
+
+
+@pytest.mark.parametrize("breakage, words", [
+    (lambda d: (d / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n"), ["calib.txt", "P2"]),
+    (lambda d: (d / "calib.txt").write_text((d / "calib.txt").read_text().replace("Tr:", "Xx:")), ["calib.txt", "LiDAR extrinsic"]),
+    (lambda d: (d / "image_2" / "000004.png").write_bytes(b"garbage"), ["000004.png", "--resume", "frames 0..3"]),
+    (lambda d: (d / "velodyne" / "000002.bin").write_bytes(b"\0" * 10), ["000002.bin", "truncated"]),
+    (lambda d: [(d / "velodyne" / "000003.bin").unlink(), (d / "image_2" / "000003.png").unlink()], ["missing frame"]),
+])
+def test_cli_bad_input(small_model, small_synth, tmp_path, breakage, words):
+    _, onnx_dir = small_model
+    d = tmp_path / "seq"
+    shutil.copytree(small_synth, d)
+    breakage(d)
+    r = runner.invoke(app, ["run", "--seq-dir", str(d), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt")])
+    assert r.exit_code == 1, r.output
+    assert "Traceback" not in r.output
+    for w in words:
+        assert w in r.output
+
+
+def test_cli_run_scores_with_gt_and_plots(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt"),
+                            "--plot", str(tmp_path / "t.png")])
+    assert r.exit_code == 0, r.output
+    assert "ATE m" in r.output and "flowpose" in r.output
+    assert (tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_kitti_root_layout(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    root = tmp_path / "kitti"
+    shutil.copytree(small_synth, root / "sequences" / "09")
+    (root / "poses").mkdir()
+    shutil.move(root / "sequences" / "09" / "poses.txt", root / "poses" / "09.txt")
+    r = runner.invoke(app, ["run", "--kitti-root", str(root), "--sequence", "09", "--onnx", str(onnx_dir),
+                            "--out", str(tmp_path / "09.txt")])
+    assert r.exit_code == 0, r.output
+    assert "ATE m" in r.output
+
+
+def test_provider_fallback_warns(small_model):
+    from d3lvo_deploy.onnx_model import resolve_providers
+
+    _, onnx_dir = small_model
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        provs = resolve_providers("tensorrt")
+    import onnxruntime as ort
+
+    if "TensorrtExecutionProvider" not in ort.get_available_providers():
+        assert provs == ["CPUExecutionProvider"] and "falling back" in str(w[0].message)
+    with pytest.raises(D3LVOInputError, match="--provider"):
+        resolve_providers("tpu")
