@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import typer
 
+from .bench_cmd import bench_command
+from .demo_cmd import demo_command
 from .eval_cmd import eval_command
 from .export_cmd import export_command
 from .parity_cmd import parity_command
@@ -40,6 +42,8 @@ app.command("train")(train_command)
 app.command("export")(export_command)
 app.command("parity")(parity_command)
 app.command("run")(run_command)
+app.command("bench")(bench_command)
+app.command("demo")(demo_command)
 
 
 def main() -> None:

@@ -33,6 +33,9 @@ class SessionConfig:
     threads: int = 0  # 0: onnxruntime decides (all physical cores)
     optimization: str = "all"
     profile_dir: str | None = None
+    # ORT's pool threads busy-wait after each run by default; between stages the pipeline does
+    # numpy work (projection) on the same 2 cores, which spinning threads would slow down.
+    spinning: bool = False
 
 
 def resolve_providers(name: str) -> list[str]:
@@ -64,6 +67,7 @@ class StageModel:
             so.intra_op_num_threads = sc.threads
             so.inter_op_num_threads = 1
             so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            so.add_session_config_entry("session.intra_op.allow_spinning", "1" if sc.spinning else "0")
             if sc.profile_dir:
                 os.makedirs(sc.profile_dir, exist_ok=True)
                 so.enable_profiling = True

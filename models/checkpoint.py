@@ -64,3 +64,12 @@ def build_model(ck: dict):
         first = str(e).splitlines()[1].strip() if len(str(e).splitlines()) > 1 else str(e)
         raise D3LVOInputError(ck.get("path"), f"weights do not fit the model config ({first[:200]})") from None
     return model.eval()
+
+
+def slim_checkpoint(src: str | Path, dst: str | Path) -> Path:
+    """Weights, config and training record only (no optimizer state): what ships in the package."""
+    ck = load_checkpoint(src)
+    keep = {k: ck[k] for k in ("step", "history", "train_config", "loss") if k in ck}
+    model = build_model(ck)
+    save_checkpoint(dst, model, ck["config"], **keep)
+    return Path(dst)

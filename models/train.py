@@ -39,6 +39,7 @@ class TrainConfig:
     lr: float = 3e-4
     weight_decay: float = 1e-4
     grad_clip: float = 5.0
+    warmup: int = 50  # linear warm-up steps, then cosine decay to 5 % of lr
     val_every: int = 500
     ckpt_every: int = 100
     seed: int = 0
@@ -46,6 +47,13 @@ class TrainConfig:
     device: str = "auto"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+
+
+def lr_factor(step: int, warmup: int, total: int) -> float:
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return 0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 def _dist_info() -> tuple[int, int, bool]:
@@ -98,6 +106,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     criterion = PoseLoss(tc.loss).to(device)
     params = list(model.parameters()) + list(criterion.parameters())
     opt = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc.warmup, tc.steps))
     step, history = 0, []
     if resume:
         ck = load_checkpoint(resume, expect=cfg)
@@ -105,6 +114,9 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         criterion.load_state_dict(ck["loss"])
         opt.load_state_dict(ck["optimizer"])
         step, history = ck["step"], ck.get("history", [])
+        sched.last_epoch = step
+        for g in opt.param_groups:
+            g["lr"] = tc.lr * lr_factor(step, tc.warmup, tc.steps)
 
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
@@ -138,6 +150,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
             opt.step()
+            sched.step()
             step += 1
             record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),
                       "completion_l1": float(comp.detach()), "s_t": float(criterion.s_t.detach()),

@@ -1,0 +1,107 @@
+"""`d3lvo bench`: per-stage latency, frames/s and peak memory of the ONNX pipeline vs torch eager."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import typer
+from rich.table import Table
+
+from d3lvo_deploy.errors import D3LVOInputError
+
+from .common import console, friendly_errors, out
+
+
+def _bench_frames(tmp: Path) -> Path:
+    """Real KITTI frames when ../shared/data is present, else a synthetic full-size sequence."""
+    from export.parity import find_real_frames
+
+    real = find_real_frames()
+    if real is not None:
+        return real
+    from d3lvo_deploy.synth.generator import SynthConfig, generate
+
+    return generate(tmp / "bench_seq", SynthConfig(frames=6, seed=321))
+
+
+@friendly_errors
+def bench_command(
+    onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
+    ckpt: Path | None = typer.Option(None, "--ckpt", help="Or a checkpoint: exported to a temporary folder first."),
+    height: int | None = typer.Option(None, "--height", help="With --ckpt: export height."),
+    width: int | None = typer.Option(None, "--width", help="With --ckpt: export width."),
+    threads: int = typer.Option(2, "--threads", help="Threads for onnxruntime and torch."),
+    runs: int = typer.Option(20, "--runs", help="Timed frames after warm-up."),
+    seq_dir: Path | None = typer.Option(None, "--seq-dir", help="Frames to run on (default: real frames, else synthetic)."),
+    torch_compare: bool = typer.Option(True, "--torch/--no-torch", help="Also time torch eager on the same stages."),
+    as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
+) -> None:
+    """Median/p90/min latency per stage, frames/s, peak RSS, and the ORT speed-up over torch eager."""
+    from d3lvo_deploy.bench import BENCH_STAGES, bench_onnx, peak_rss_mb
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.onnx_model import SessionConfig
+    from d3lvo_deploy.sequence import KittiSequence
+
+    if runs < 1:
+        raise D3LVOInputError(None, "--runs must be at least 1")
+    with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
+        tmp = Path(tmpd)
+        if ckpt is not None:
+            from export.onnx_export import ExportConfig, export_checkpoint
+
+            onnx = tmp / "onnx"
+            with console.status("exporting the checkpoint"):
+                export_checkpoint(ckpt, ExportConfig(out=onnx, height=height, width=width))
+        if onnx is None:
+            from d3lvo_deploy.bundled import bundled_model_dir
+
+            onnx = bundled_model_dir()
+        manifest = load_manifest(onnx)
+        seq = KittiSequence.open(seq_dir or _bench_frames(tmp))
+        sc = SessionConfig(threads=threads)
+        with console.status(f"timing onnxruntime ({runs} frames)"):
+            ort_t = bench_onnx(onnx, seq, sc, runs).summary()
+        rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
+        torch_t = None
+        if torch_compare:
+            try:
+                from models.bench_torch import bench_torch
+                from models.config import D3LVOConfig
+            except ImportError:
+                console.print("torch is not installed: no torch comparison", highlight=False)
+            else:
+                with console.status(f"timing torch eager ({runs} frames)"):
+                    torch_t = bench_torch(D3LVOConfig.from_dict(manifest["model_config"]), seq, threads, runs).summary()
+    res = {
+        "model": str(onnx), "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
+        "precision": manifest.get("precision", "fp32"), "threads": threads, "runs": runs, "frames_from": str(seq.root),
+        "stages_ms": ort_t, "total_ms_median": ort_t["total"]["median"],
+        "fps": 1000.0 / ort_t["total"]["median"], "rss_mb": rss,
+    }
+    if torch_t is not None:
+        net = ("completion", "encoder", "flowpose")
+        t_ort = sum(ort_t[k]["median"] for k in net if k in ort_t)
+        t_torch = sum(torch_t[k]["median"] for k in net if k in torch_t)
+        res["torch_stages_ms"] = torch_t
+        res["ort_over_torch"] = t_torch / t_ort  # speed-up of ORT over torch eager on the network stages
+    if as_json:
+        typer.echo(json.dumps(res, indent=2))
+        return
+    t = Table(title=f"d3lvo bench: {res['size']}, {threads} threads, {runs} frames ({res['precision']})")
+    for c in ("stage", "ORT median", "p90", "min") + (("torch median", "speed-up") if torch_t else ()):
+        t.add_column(c, justify="right")
+    for k in BENCH_STAGES:
+        if k not in ort_t:
+            continue
+        row = [k, f"{ort_t[k]['median']:.1f}", f"{ort_t[k]['p90']:.1f}", f"{ort_t[k]['min']:.1f}"]
+        if torch_t:
+            tm = torch_t.get(k, {}).get("median") if k != "project" else None
+            row += ["" if tm is None else f"{tm:.1f}", "" if tm is None else f"{tm / max(ort_t[k]['median'], 1e-9):.2f}x"]
+        t.add_row(*row)
+    out.print(t)
+    msg = f"{res['fps']:.1f} frames/s end to end (incl. projection), peak RSS {rss:.0f} MB"
+    if torch_t:
+        msg += f", ORT {res['ort_over_torch']:.2f}x faster than torch eager on the network"
+    out.print(msg, highlight=False)

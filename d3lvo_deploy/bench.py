@@ -1,0 +1,57 @@
+"""Per-stage latency of the ONNX pipeline on real-format frames (torch-free part of `d3lvo bench`)."""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .odometry import Odometry
+from .onnx_model import SessionConfig, StageModel
+from .sequence import KittiSequence
+
+BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
+
+
+@dataclass
+class StageTimes:
+    samples: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in BENCH_STAGES})
+
+    def add(self, ms: dict[str, float]) -> None:
+        for k, v in ms.items():
+            self.samples.setdefault(k, []).append(v)
+        self.samples["total"].append(sum(v for k, v in ms.items() if k != "total"))
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        out = {}
+        for k, v in self.samples.items():
+            if v:
+                a = np.asarray(v)
+                out[k] = {"median": float(np.median(a)), "p90": float(np.percentile(a, 90)), "min": float(a.min())}
+        return out
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warmup: int = 3) -> StageTimes:
+    """Steady-state per-frame latency: the stream runs over the sequence's frames (cycled), as on a car."""
+    model = StageModel(model_dir, sc)
+    odo = Odometry(model_dir, seq.calib, sc, model=model)
+    frames = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
+    times = StageTimes()
+    for k in range(warmup + runs):
+        img, pts = frames[k % len(frames)]
+        odo.step(img, pts)
+        if k >= warmup:
+            times.add(dict(odo.last_timing.ms))
+    return times
+
+
+def timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t0) * 1000

@@ -1,0 +1,54 @@
+"""`d3lvo bench` runs and its numbers are consistent with each other (no timing thresholds)."""
+
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.bench import StageTimes, bench_onnx
+from d3lvo_deploy.onnx_model import SessionConfig
+from d3lvo_deploy.sequence import KittiSequence
+
+runner = CliRunner()
+
+
+def test_total_is_the_sum_of_stages(small_model, small_synth):
+    _, onnx_dir = small_model
+    t = bench_onnx(onnx_dir, KittiSequence.open(small_synth), SessionConfig(threads=1), runs=4, warmup=1)
+    s = t.samples
+    assert len(s["total"]) == 4
+    for i in range(4):
+        assert s["total"][i] == sum(s[k][i] for k in ("project", "completion", "encoder", "flowpose"))
+    summ = t.summary()
+    for k, v in summ.items():
+        assert v["min"] <= v["median"] <= v["p90"]
+
+
+def test_stage_times_summary_by_hand():
+    t = StageTimes()
+    for ms in ([1.0, 2.0], [3.0, 4.0], [5.0, 6.0]):
+        t.add({"encoder": ms[0], "flowpose": ms[1]})
+    s = t.summary()
+    assert s["total"]["median"] == 7.0 and s["total"]["min"] == 3.0
+    assert s["encoder"]["p90"] == np.percentile([1.0, 3.0, 5.0], 90)
+
+
+def test_cli_bench_json(small_model, small_synth):
+    ck, onnx_dir = small_model
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "3",
+                            "--threads", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    for key in ("total_ms_median", "ort_over_torch", "rss_mb", "fps", "stages_ms", "torch_stages_ms"):
+        assert key in d
+    assert d["fps"] == 1000.0 / d["total_ms_median"]
+    assert d["rss_mb"] > 10 and d["ort_over_torch"] > 0
+    assert set(d["stages_ms"]) >= {"project", "completion", "encoder", "flowpose", "total"}
+
+
+def test_cli_bench_from_checkpoint(small_model, small_synth):
+    ck, _ = small_model
+    r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch"])
+    assert r.exit_code == 0, r.output
+    assert "frames/s" in r.output
