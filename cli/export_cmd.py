@@ -6,7 +6,19 @@ from pathlib import Path
 
 import typer
 
+from d3lvo_deploy.errors import D3LVOInputError
+
 from .common import console, friendly_errors
+
+
+def _default_calibration(tmp: Path) -> list[Path]:
+    """Real frames when ../shared/data is present, plus a synthetic sequence: both looks the model meets."""
+    from d3lvo_deploy.synth.generator import SynthConfig, generate
+    from export.parity import find_real_frames
+
+    seqs = [generate(tmp / "calib_synth", SynthConfig(frames=8, seed=4242, width=620, height=188))]
+    real = find_real_frames()
+    return seqs + ([real] if real is not None else [])
 
 
 @friendly_errors
@@ -17,14 +29,32 @@ def export_command(
     height: int | None = typer.Option(None, "--height", help="Input height (default: the checkpoint's)."),
     width: int | None = typer.Option(None, "--width", help="Input width (default: the checkpoint's)."),
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
+    precision: str = typer.Option("fp32", "--precision", help="fp32 | fp16 | int8 (static, QDQ, per-channel)."),
+    calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
+                                         "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:
     """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed."""
+    import tempfile
+
     from export.onnx_export import ExportConfig, export_checkpoint
 
-    with console.status("exporting"):
-        m = export_checkpoint(ckpt, ExportConfig(out=out, opset=opset, height=height, width=width,
-                                                 dynamic_batch=dynamic_batch),
-                              progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
+    if precision not in ("fp32", "fp16", "int8"):
+        raise D3LVOInputError(None, f"--precision must be fp32, fp16 or int8, not {precision!r}")
+    with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
+        fp32_dir = out if precision == "fp32" else Path(tmpd) / "fp32"
+        with console.status("exporting"):
+            m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
+                                                     dynamic_batch=dynamic_batch),
+                                  progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
+        if precision != "fp32":
+            from export.quantize import quantize_folder
+
+            seqs: list[Path] = []
+            if precision == "int8":
+                seqs = list(calib_seq) or _default_calibration(Path(tmpd))
+            with console.status(f"converting to {precision}"):
+                m = quantize_folder(fp32_dir, out, precision, seqs)
     size = sum((out / s["file"]).stat().st_size for s in m["stages"].values()) / 1e6
     console.print(f"wrote {', '.join(s['file'] for s in m['stages'].values())} + manifest.json to {out} "
-                  f"({size:.1f} MB, opset {m['opset']}, {m['input']['width']}x{m['input']['height']})", highlight=False)
+                  f"({size:.1f} MB, {m['precision']}, opset {m['opset']}, {m['input']['width']}x{m['input']['height']})",
+                  highlight=False)

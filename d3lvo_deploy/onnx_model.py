@@ -67,6 +67,7 @@ class StageModel:
             so.intra_op_num_threads = sc.threads
             so.inter_op_num_threads = 1
             so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            so.log_severity_level = 3  # errors only: optimiser notes (e.g. fp16 constant folding) are not user news
             so.add_session_config_entry("session.intra_op.allow_spinning", "1" if sc.spinning else "0")
             if sc.profile_dir:
                 os.makedirs(sc.profile_dir, exist_ok=True)

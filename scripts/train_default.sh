@@ -15,8 +15,11 @@ D3LVO=${D3LVO:-.venv/bin/d3lvo}
 train=()
 i=0
 for s in 00 01 02 03 04 05 06 07 08; do
+  n=$(wc -l < "$GT/$s.txt")
+  start=$((50 + 37 * i))
+  [ $((start + FRAMES)) -le "$n" ] || start=$((n - FRAMES))
   "$D3LVO" synth --out "$OUT/data/train_$s" --frames "$FRAMES" --seed $((10 + i)) --size "$SIZE" \
-    --motion-from "$GT/$s.txt" --motion-start $((50 + 37 * i))
+    --motion-from "$GT/$s.txt" --motion-start "$start"
   train+=(--data "$OUT/data/train_$s")
   i=$((i + 1))
 done

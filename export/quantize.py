@@ -1,0 +1,123 @@
+"""Reduced-precision variants of an exported folder: FP16 weights, or INT8 static quantisation.
+
+INT8 uses onnxruntime's static quantisation (QDQ format, per-channel weights) calibrated on
+real-format frames: each stage is calibrated with the inputs it really sees, i.e. the FP32
+upstream stages' outputs on those frames. The cost volume (Mul/ReduceSum) and the pose MLP stay
+FP32: only Conv is quantised in flowpose, because the pose head's small Gemm layers decide the
+metric output and gain little speed from INT8.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import onnx
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.frames import FramePreprocessor
+from d3lvo_deploy.manifest import load_manifest
+from d3lvo_deploy.onnx_model import StageModel
+from d3lvo_deploy.sequence import KittiSequence
+
+from .onnx_export import check_graph, sha256
+
+
+def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16) -> dict[str, list[dict]]:
+    """Per stage, the list of input dicts the stage receives on the calibration frames."""
+    model = StageModel(fp32_dir)
+    feeds: dict[str, list[dict]] = {name: [] for name in model.sessions}
+    for d in seq_dirs:
+        seq = KittiSequence.open(d)
+        h, w = seq.image(0).shape[:2]
+        pre = FramePreprocessor.create(seq.calib, w, h, model.width, model.height, model.depth_input,
+                                       model.config["max_depth"])
+        prev = None
+        for i in range(min(len(seq), max_frames // len(seq_dirs) + 1)):
+            rgb = pre.rgb(seq.image(i)).transpose(2, 0, 1)[None].copy()
+            depth = pre.depth(seq.scan(i) if model.depth_input != "none" else None)[None, None].copy()
+            if "completion" in model.sessions:
+                feeds["completion"].append({"rgb": rgb, "sparse_depth": depth})
+                depth = model.complete(rgb, depth)
+            enc_in = {"rgb": rgb} | ({"depth": depth} if model.depth_input != "none" else {})
+            feeds["encoder"].append(enc_in)
+            enc = model.run("encoder", enc_in)
+            if prev is not None:
+                fp_in = {}
+                for inp in model.sessions["flowpose"].get_inputs():
+                    frame, key = inp.name.split("_", 1)
+                    fp_in[inp.name] = (prev if frame.endswith("1") else enc)[f"{frame[:-1]}_{key}"]
+                feeds["flowpose"].append(fp_in)
+            prev = enc
+    return feeds
+
+
+def _toposort(graph: onnx.GraphProto) -> None:
+    ready = {i.name for i in graph.input} | {i.name for i in graph.initializer} | {""}
+    pending = list(graph.node)
+    ordered = []
+    while pending:
+        rest = []
+        for n in pending:
+            if all(i in ready for i in n.input):
+                ordered.append(n)
+                ready.update(n.output)
+            else:
+                rest.append(n)
+        if len(rest) == len(pending):
+            raise RuntimeError("graph has a cycle or a dangling input")
+        pending = rest
+    del graph.node[:]
+    graph.node.extend(ordered)
+
+
+class _Reader:
+    def __init__(self, items: list[dict]):
+        self.items = iter(items)
+
+    def get_next(self):
+        return next(self.items, None)
+
+
+def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: list[Path]) -> dict:
+    """Write `precision` (fp16|int8) versions of every stage of fp32_dir into out_dir, with a manifest."""
+    manifest = load_manifest(fp32_dir)
+    if precision not in ("fp16", "int8"):
+        raise D3LVOInputError(None, f"--precision must be fp32, fp16 or int8, not {precision!r}")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise D3LVOInputError(out_dir, f"output folder is not writable ({e.strerror})") from None
+    if precision == "int8":
+        from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
+        from onnxruntime.quantization.shape_inference import quant_pre_process
+
+        if not calib_seqs:
+            raise D3LVOInputError(None, "INT8 needs calibration frames (--calib-seq DIR)")
+        feeds = calibration_feeds(fp32_dir, calib_seqs)
+    for name, st in manifest["stages"].items():
+        src, dst = fp32_dir / st["file"], out_dir / st["file"]
+        if precision == "fp16":
+            from onnxruntime.transformers.float16 import convert_float_to_float16
+
+            m = convert_float_to_float16(onnx.load(str(src)), keep_io_types=True)
+            _toposort(m.graph)  # the converter appends its input casts at the end of the node list
+            onnx.save(m, str(dst))
+        else:
+            pre = out_dir / f"{name}.pre.onnx"
+            quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+            quantize_static(str(pre), str(dst), _Reader(feeds[name]), quant_format=QuantFormat.QDQ,
+                            per_channel=True, activation_type=QuantType.QInt8, weight_type=QuantType.QInt8,
+                            op_types_to_quantize=["Conv"] if name == "flowpose" else ["Conv", "MatMul", "Gemm"])
+            pre.unlink()
+        m = onnx.load(str(dst))
+        del m.metadata_props[:]
+        for p in onnx.load(str(src), load_external_data=False).metadata_props:
+            m.metadata_props.append(p)
+        m.metadata_props.append(onnx.StringStringEntryProto(key="d3lvo_precision", value=precision))
+        onnx.save(m, str(dst))
+        check_graph(dst)
+        manifest["stages"][name]["sha256"] = sha256(dst)
+    manifest["precision"] = precision
+    (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    return manifest
