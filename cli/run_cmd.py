@@ -38,7 +38,14 @@ def run_command(
     seq_dir: Path | None = typer.Option(None, "--seq-dir", help="KITTI odometry sequence folder."),
     kitti_root: Path | None = typer.Option(None, "--kitti-root", help="KITTI odometry root (sequences/, poses/)."),
     sequence: str | None = typer.Option(None, "--sequence", help="Sequence id under --kitti-root, e.g. 09."),
-    out_path: Path = typer.Option(..., "--out", help="Trajectory file to write (cam0 poses, first = identity)."),
+    out_path: Path | None = typer.Option(None, "--out", help="Trajectory file to write (cam0 poses, first = identity)."),
+    sequences: str | None = typer.Option(None, "--sequences", help="Many sequences under --kitti-root: 00-10 or 00,05."),
+    out_dir: Path | None = typer.Option(None, "--out-dir", help="With --sequences: folder for NN.txt trajectories."),
+    engine: str = typer.Option("local", "--engine", help="With --sequences: sequential | local (processes) | ray."),
+    workers: int = typer.Option(2, "--workers", help="With --sequences: parallel workers."),
+    address: str | None = typer.Option(None, "--address", help="With --engine ray: cluster address (default: local)."),
+    chunk: int = typer.Option(1000, "--chunk", help="With --sequences: frames per task (long sequences are split)."),
+    overlap: int = typer.Option(1, "--overlap", help="With --sequences: frames shared by consecutive chunks."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
     fmt: str = typer.Option("kitti", "--format", help="kitti | tum."),
     start: int = typer.Option(0, "--start", help="First frame."),
@@ -56,6 +63,10 @@ def run_command(
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.sequence import KittiSequence
 
+    if sequences is not None:
+        return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap)
+    if out_path is None:
+        raise D3LVOInputError(None, "--out FILE is required (or --sequences with --out-dir)")
     if (seq_dir is None) == (kitti_root is None):
         raise D3LVOInputError(None, "give either --seq-dir DIR or --kitti-root R --sequence NN")
     if kitti_root is not None:
@@ -88,6 +99,39 @@ def run_command(
     out.print(latency_table(summary.stats()))
     out.print(f"{summary.frames} poses in {out_path} ({fmt}, cam0, first pose identity)", highlight=False)
     _score(seq, out_path, fmt, start, end, plot)
+
+
+def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap) -> None:
+    import time
+
+    from d3lvo_deploy.evaluation import evaluate_files
+    from d3lvo_deploy.scaleout import parse_sequences, run_many
+
+    from .eval_cmd import report_table
+
+    if kitti_root is None or out_dir is None:
+        raise D3LVOInputError(None, "--sequences needs --kitti-root R and --out-dir OUT")
+    names = parse_sequences(spec)
+    dirs = {n: kitti_root / "sequences" / n for n in names}
+    for n, d in dirs.items():
+        if not d.is_dir():
+            raise D3LVOInputError(d, f"sequence {n} not found under {kitti_root}")
+    from d3lvo_deploy.sequence import KittiSequence
+    from d3lvo_deploy.scaleout import plan_chunks
+
+    total = sum(len(plan_chunks(len(KittiSequence.open(d)), chunk, overlap)) for d in dirs.values())
+    t0 = time.perf_counter()
+    with frame_progress() as bar:
+        task = bar.add_task(f"{engine} x{workers}", total=total, rate="chunks")
+        residuals = run_many(dirs, resolve_model_dir(onnx), out_dir, engine=engine, workers=workers, chunk=chunk,
+                             overlap=overlap, address=address, on_chunk=lambda c: bar.advance(task),
+                             on_sequence=lambda n, p, r: console.print(f"{n}: {p} (overlap residual {r:.1e} m)",
+                                                                         highlight=False))
+    console.print(f"{len(residuals)} sequences in {time.perf_counter() - t0:.1f} s", highlight=False)
+    pairs = [(kitti_root / "poses" / f"{n}.txt", out_dir / f"{n}.txt") for n in names
+             if (kitti_root / "poses" / f"{n}.txt").is_file()]
+    if pairs:
+        out.print(report_table(evaluate_files(pairs)))
 
 
 def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None) -> None:

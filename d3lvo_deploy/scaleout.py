@@ -1,0 +1,184 @@
+"""Many sequences, many workers: sequences split into overlapping chunks, run in parallel, stitched.
+
+D3LVO's relative pose for (t-1, t) depends on those two frames only, so a chunk started at frame s
+reproduces the sequential run's motions exactly; stitching maps each chunk onto the previous one
+through the pose of their first shared frame, and the rest of the overlap is a check (reported as
+`overlap_residual_m`). Engines: `sequential`, `local` (a process pool on this machine) and `ray`
+(Ray actors; a cluster via `address`). Each worker holds one set of ONNX sessions for its life.
+Each sequence's trajectory is written as soon as its last chunk is back.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .errors import D3LVOInputError
+from .odometry import Odometry
+from .onnx_model import SessionConfig, StageModel
+from .pipeline import format_kitti
+from .sequence import KittiSequence
+
+ENGINES = ("sequential", "local", "ray")
+
+
+@dataclass(frozen=True)
+class Chunk:
+    seq: str  # sequence name (output file stem)
+    seq_dir: str
+    start: int
+    end: int  # exclusive
+
+
+def plan_chunks(n_frames: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
+    """Frame ranges of `chunk` frames sharing `overlap` frames with the previous range."""
+    if overlap < 1 or chunk <= overlap:
+        raise D3LVOInputError(None, f"need chunk > overlap >= 1 (got chunk {chunk}, overlap {overlap})")
+    ranges, start = [], 0
+    while True:
+        end = min(start + chunk, n_frames)
+        ranges.append((start, end))
+        if end == n_frames:
+            return ranges
+        start = end - overlap
+
+
+def stitch(parts: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, float]:
+    """[(start, poses relative to that start)] in order -> one trajectory, and the overlap residual."""
+    start0, first = parts[0]
+    traj = {start0 + k: p for k, p in enumerate(first)}
+    residual = 0.0
+    for start, poses in parts[1:]:
+        anchor = traj[start]  # pose of the shared first frame in the sequence frame; poses[0] is identity
+        for k, p in enumerate(poses):
+            g = anchor @ p
+            if start + k in traj:
+                residual = max(residual, float(np.linalg.norm(traj[start + k][:3, 3] - g[:3, 3])))
+            else:
+                traj[start + k] = g
+    return np.stack([traj[i] for i in sorted(traj)]), residual
+
+
+# -- the work each worker does --------------------------------------------------------------------
+_MODELS: dict[str, StageModel] = {}
+
+
+def _model(model_dir: str, sc: SessionConfig) -> StageModel:
+    if model_dir not in _MODELS:  # one session set per worker process, reused for every chunk
+        _MODELS[model_dir] = StageModel(model_dir, sc)
+    return _MODELS[model_dir]
+
+
+def run_chunk(c: Chunk, model_dir: str, sc: SessionConfig) -> tuple[Chunk, np.ndarray]:
+    seq = KittiSequence.open(c.seq_dir)
+    odo = Odometry(model_dir, seq.calib, sc, model=_model(model_dir, sc))
+    need_scan = odo.model.depth_input != "none"
+    poses = [odo.step(seq.image(i), seq.scan(i) if need_scan else None) for i in range(c.start, c.end)]
+    return c, np.stack(poses)
+
+
+# -- engines ----------------------------------------------------------------------------------------
+def _sequential(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.ndarray]]:
+    for c in chunks:
+        yield run_chunk(c, model_dir, sc)
+
+
+def _local(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.ndarray]]:
+    import multiprocessing as mp
+
+    # spawn, not fork: onnxruntime's thread pools do not survive a fork of an initialised parent
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        pending = {pool.submit(run_chunk, c, model_dir, sc) for c in chunks}
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in done:
+                yield f.result()
+
+
+def _ray(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.ndarray]]:
+    try:
+        import ray
+        from ray.util import ActorPool
+    except ImportError:
+        raise D3LVOInputError(None, "--engine ray needs Ray: pip install 'd3lvo-deploy[ray]'") from None
+    started = not ray.is_initialized()
+    if started:
+        kw = {"address": address} if address else {"num_cpus": workers, "include_dashboard": False}
+        ray.init(**kw, log_to_driver=False, configure_logging=False)
+
+    @ray.remote(num_cpus=1)
+    class Worker:
+        def run(self, c, model_dir, sc):
+            return run_chunk(c, model_dir, sc)
+
+    try:
+        pool = ActorPool([Worker.remote() for _ in range(workers)])
+        for c in chunks:
+            pool.submit(lambda a, ch: a.run.remote(ch, model_dir, sc), c)
+        while pool.has_next():
+            yield pool.get_next_unordered()
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, engine: str = "local", workers: int = 2,
+             chunk: int = 1000, overlap: int = 1, address: str | None = None, sc: SessionConfig | None = None,
+             on_chunk: Callable[[Chunk], None] | None = None,
+             on_sequence: Callable[[str, Path, float], None] | None = None) -> dict[str, float]:
+    """Run every sequence; returns {sequence: overlap residual (m)}. Trajectories go to out_dir/NAME.txt."""
+    if engine not in ENGINES:
+        raise D3LVOInputError(None, f"--engine must be one of {', '.join(ENGINES)}, not {engine!r}")
+    if workers < 1:
+        raise D3LVOInputError(None, "--workers must be at least 1")
+    model_dir = str(Path(model_dir).resolve())
+    StageModel(model_dir)  # verify the model once, here, before fanning out
+    if sc is None:  # split the machine's cores between the workers
+        sc = SessionConfig(threads=max(1, (os.cpu_count() or 1) // workers))
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise D3LVOInputError(out_dir, f"cannot create the output folder ({e.strerror})") from None
+    chunks, expected = [], {}
+    for name, d in seq_dirs.items():
+        seq = KittiSequence.open(d)
+        ranges = plan_chunks(len(seq), chunk, overlap)
+        expected[name] = len(ranges)
+        chunks += [Chunk(name, str(d), s, e) for s, e in ranges]
+    got: dict[str, list[tuple[int, np.ndarray]]] = {n: [] for n in seq_dirs}
+    residuals = {}
+    engine_fn = {"sequential": _sequential, "local": _local, "ray": _ray}[engine]
+    for c, poses in engine_fn(chunks, model_dir, sc, workers, address):
+        got[c.seq].append((c.start, poses))
+        if on_chunk is not None:
+            on_chunk(c)
+        if len(got[c.seq]) == expected[c.seq]:
+            traj, res = stitch(sorted(got[c.seq], key=lambda x: x[0]))
+            path = out_dir / f"{c.seq}.txt"
+            tmp = path.with_name(path.name + ".part")
+            tmp.write_text("".join(format_kitti(T) + "\n" for T in traj))
+            tmp.replace(path)
+            residuals[c.seq] = res
+            if on_sequence is not None:
+                on_sequence(c.seq, path, res)
+    return residuals
+
+
+def parse_sequences(spec: str) -> list[str]:
+    """'00-10' or '00,02,05' or '09' -> zero-padded ids."""
+    out: list[str] = []
+    try:
+        for part in spec.split(","):
+            if "-" in part:
+                a, b = part.split("-")
+                out += [f"{i:02d}" for i in range(int(a), int(b) + 1)]
+            elif part.strip():
+                out.append(f"{int(part):02d}")
+    except ValueError:
+        raise D3LVOInputError(None, f"--sequences must look like 00-10 or 00,02,05, not {spec!r}") from None
+    return out
