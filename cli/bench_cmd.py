@@ -37,6 +37,7 @@ def bench_command(
     seq_dir: Path | None = typer.Option(None, "--seq-dir", help="Frames to run on (default: real frames, else synthetic)."),
     torch_compare: bool = typer.Option(True, "--torch/--no-torch", help="Also time torch eager on the same stages."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
+    profile: Path | None = typer.Option(None, "--profile", help="Write onnxruntime profiles here and list the top ops."),
 ) -> None:
     """Median/p90/min latency per stage, frames/s, peak RSS, and the ORT speed-up over torch eager."""
     from d3lvo_deploy.bench import BENCH_STAGES, bench_onnx, peak_rss_mb
@@ -60,9 +61,14 @@ def bench_command(
             onnx = bundled_model_dir()
         manifest = load_manifest(onnx)
         seq = KittiSequence.open(seq_dir or _bench_frames(tmp))
-        sc = SessionConfig(threads=threads)
+        sc = SessionConfig(threads=threads, profile_dir=str(profile) if profile else None)
         with console.status(f"timing onnxruntime ({runs} frames)"):
             ort_t = bench_onnx(onnx, seq, sc, runs).summary()
+        top_ops = None
+        if profile is not None:
+            from d3lvo_deploy.bench import profile_summary
+
+            top_ops = profile_summary(sorted(str(p) for p in profile.glob("*.json")))
         rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
         torch_t = None
         if torch_compare:
@@ -86,6 +92,8 @@ def bench_command(
         t_torch = sum(torch_t[k]["median"] for k in net if k in torch_t)
         res["torch_stages_ms"] = torch_t
         res["ort_over_torch"] = t_torch / t_ort  # speed-up of ORT over torch eager on the network stages
+    if top_ops is not None:
+        res["top_ops_ms"] = top_ops
     if as_json:
         typer.echo(json.dumps(res, indent=2))
         return
@@ -105,3 +113,6 @@ def bench_command(
     if torch_t:
         msg += f", ORT {res['ort_over_torch']:.2f}x faster than torch eager on the network"
     out.print(msg, highlight=False)
+    if top_ops:
+        for stage, ops in top_ops.items():
+            out.print(f"  {stage}: " + ", ".join(f"{op} {ms:.0f} ms" for op, ms in ops[:6]), highlight=False)

@@ -48,6 +48,8 @@ def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warm
         odo.step(img, pts)
         if k >= warmup:
             times.add(dict(odo.last_timing.ms))
+    if sc.profile_dir:
+        model.end_profiling()
     return times
 
 
@@ -55,3 +57,20 @@ def timed(fn) -> float:
     t0 = time.perf_counter()
     fn()
     return (time.perf_counter() - t0) * 1000
+
+
+def profile_summary(profile_files: list[str], top: int = 8) -> dict[str, list[tuple[str, float]]]:
+    """Per stage, the op types that took the most time (ms summed over the profiled runs)."""
+    import json
+    from collections import defaultdict
+
+    out = {}
+    for f in profile_files:
+        events = json.load(open(f))
+        by_op: dict[str, float] = defaultdict(float)
+        for e in events:
+            if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
+                by_op[e.get("args", {}).get("op_name", "?")] += e.get("dur", 0) / 1000.0
+        stage = f.rsplit("/", 1)[-1].split("_", 1)[0]
+        out[stage] = sorted(by_op.items(), key=lambda kv: -kv[1])[:top]
+    return out

@@ -18,7 +18,7 @@ STANDARD_DOMAINS = ("", "ai.onnx")
 STAGES = ("completion", "encoder", "flowpose")
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -47,6 +47,6 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
         f = model_dir / st["file"]
         if not f.is_file():
             raise D3LVOInputError(f, f"{name} model listed in the manifest is missing")
-        if verify_hashes and _sha256(f) != st["sha256"]:
+        if verify_hashes and sha256_file(f) != st["sha256"]:
             raise D3LVOInputError(f, "sha256 differs from manifest.json (modified or from another export)")
     return m

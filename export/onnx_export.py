@@ -8,7 +8,6 @@ over all nodes that refuses any non-standard domain, and an onnxruntime session 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 import warnings
@@ -21,6 +20,7 @@ import torch
 import d3lvo_deploy
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
+from d3lvo_deploy.manifest import sha256_file as sha256
 from models.checkpoint import build_model, load_checkpoint
 from models.d3lvo import D3LVO
 
@@ -36,14 +36,6 @@ class ExportConfig:
     height: int | None = None  # default: the checkpoint's config
     width: int | None = None
     dynamic_batch: bool = False
-
-
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def non_standard_nodes(model: onnx.ModelProto) -> list[str]:

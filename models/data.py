@@ -18,7 +18,7 @@ from torch.utils.data import Dataset
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
 from d3lvo_deploy.frames import FramePreprocessor
-from d3lvo_deploy.projection import View
+from d3lvo_deploy.projection import View, sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
 
 from .augment import flip_images, flip_pose, roll_pose, rotate_images
@@ -30,6 +30,28 @@ class AugmentConfig:
     flip: float = 0.5  # probability
     brightness: float = 0.2  # factor in [1 - b, 1 + b], shared by both frames
     rotation_deg: float = 2.0  # uniform in [-r, r], shared by both frames
+
+
+def rigid_flow(depth: np.ndarray, K: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Optical flow of a static scene from frame 1 to frame 2: back-project with depth, move by
+    inv(A) (A = frame 2's pose in frame 1), project. Returns (2,H,W) flow and (1,H,W) validity.
+
+    Exact on the synthetic world (dense z-buffer); on real KITTI it is defined at LiDAR pixels.
+    """
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = depth.astype(np.float64)
+    X = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], 0).reshape(3, -1)
+    Ainv = np.linalg.inv(A)
+    X2 = Ainv[:3, :3] @ X + Ainv[:3, 3:4]
+    z2 = X2[2]
+    ok = (z.reshape(-1) > 0) & (z2 > 0.1)
+    z2 = np.where(ok, z2, 1.0)
+    u2 = K[0, 0] * X2[0] / z2 + K[0, 2]
+    v2 = K[1, 1] * X2[1] / z2 + K[1, 2]
+    flow = np.stack([u2 - u.reshape(-1), v2 - v.reshape(-1)], 0)
+    flow[:, ~ok] = 0.0
+    return flow.reshape(2, h, w).astype(np.float32), ok.reshape(1, h, w).astype(np.float32)
 
 
 def pose_vector(A: np.ndarray) -> np.ndarray:
@@ -95,6 +117,9 @@ class PairDataset(Dataset):
         imgs = [L.rgb(i - 1), L.rgb(i)]
         deps = [L.depth_input(i - 1), L.depth_input(i)]
         gts = [L.gt_depth(i - 1), L.gt_depth(i)]
+        # depth that defines the flow target: the dense z-buffer where the data has one, else LiDAR
+        gts.append(gts[0] if np.any(gts[0] > 0) else sparse_depth(L.seq.scan(i - 1), L.pre.P, self.cfg.width,
+                                                                   self.cfg.height))
         A = self.relative_pose(k, i)
         if self.augment is not None:
             rng = np.random.default_rng([self.seed, self.epoch, idx])
@@ -113,10 +138,16 @@ class PairDataset(Dataset):
             if a.brightness > 0:
                 f = float(rng.uniform(1 - a.brightness, 1 + a.brightness))
                 imgs = [np.clip(im * f, 0.0, 1.0) for im in imgs]
+        else:
+            cx, cy = float(L.K[0, 2]), float(L.K[1, 2])
+        K = L.K.copy()
+        K[0, 2], K[1, 2] = cx, cy
+        flow, valid = rigid_flow(gts[2], K, A)
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
         return {
             "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),
             "depth1": t(deps[0])[None], "depth2": t(deps[1])[None],
             "gt_depth1": t(gts[0])[None], "gt_depth2": t(gts[1])[None],
             "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)),
+            "flow": t(flow), "flow_valid": t(valid),
         }

@@ -21,6 +21,7 @@ class LossConfig:
     s_t_init: float = 0.0
     s_q_init: float = -3.0
     completion_weight: float = 0.05  # L1 (m) on depth GT where the data has it (synthetic depth_2)
+    flow_weight: float = 0.1  # EPE (px at each level) against the rigid flow of GT depth + GT pose
 
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:
