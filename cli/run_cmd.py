@@ -135,9 +135,7 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
 
 
 def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None) -> None:
-    import numpy as np
-
-    from d3lvo_deploy.evaluation import evaluate
+    from d3lvo_deploy.evaluation import EvalReport, evaluate
     from d3lvo_deploy.geometry import relative
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import Trajectory, read_poses
@@ -155,8 +153,6 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
     stop = len(seq) if end is None else end
     g = gt.poses[start:stop]
     res = evaluate(Trajectory.from_poses(relative(g[0], g)), Trajectory.from_poses(est.poses), name=seq.root.name)
-    from d3lvo_deploy.evaluation import EvalReport
-
     for note in res.notes:
         console.print(f"[yellow]note[/] {note}", highlight=False)
     out.print(report_table(EvalReport([res], "none")))
@@ -164,4 +160,3 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
         plot_trajectories(plot, {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
                           title=f"{seq.root.name}: ATE {res.ate:.2f} m")
         console.print(f"plot written to {plot}", highlight=False)
-    _ = np  # keep numpy import local to this helper

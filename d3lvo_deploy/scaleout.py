@@ -91,13 +91,34 @@ def _sequential(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk
 def _local(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.ndarray]]:
     import multiprocessing as mp
 
-    # spawn, not fork: onnxruntime's thread pools do not survive a fork of an initialised parent
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        pending = {pool.submit(run_chunk, c, model_dir, sc) for c in chunks}
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for f in done:
-                yield f.result()
+    # spawn, not fork: onnxruntime's thread pools do not survive a fork of an initialised parent.
+    # Each worker's OpenMP/BLAS/OpenCV pools get its share of the cores (as Ray does for its
+    # workers); left at their default they oversubscribe the machine.
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: str(sc.threads) for k in _THREAD_VARS})
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                 initializer=_limit_threads, initargs=(sc.threads,)) as pool:
+            pending = {pool.submit(run_chunk, c, model_dir, sc) for c in chunks}
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    yield f.result()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _limit_threads(n: int) -> None:
+    import cv2
+
+    cv2.setNumThreads(n)
 
 
 def _ray(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.ndarray]]:

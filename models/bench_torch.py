@@ -5,7 +5,6 @@ Speed does not depend on weight values, so the model is built from the export's 
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from d3lvo_deploy.bench import StageTimes, timed
@@ -41,5 +40,4 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
         prev = cur
         if k >= warmup:
             times.add(ms)
-    _ = np
     return times

@@ -152,3 +152,21 @@ def test_ddp_two_cpu_processes(small_synth, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     ck = load_checkpoint(tmp_path / "ddp.pt")
     assert ck["step"] == 2
+
+
+def test_rigid_flow_hand_case():
+    """Moving 1 m forward towards a wall 10 m away: a pixel at (u, v) moves to c + (p - c) * 10/9."""
+    from models.data import rigid_flow
+
+    depth = np.full((H, W), 10.0, np.float32)
+    depth[0, 0] = 0.0  # no depth: no target
+    A = make_se3(np.eye(3), [0.0, 0.0, 1.0])
+    flow, valid = rigid_flow(depth, K, A)
+    v, u = 30, 200
+    np.testing.assert_allclose(flow[:, v, u], [(u - K[0, 2]) * (10 / 9 - 1), (v - K[1, 2]) * (10 / 9 - 1)], rtol=1e-5)
+    assert valid[0, 0, 0] == 0 and valid[0, v, u] == 1
+    # a pure yaw of the camera by a small angle shifts the centre pixel by fx * tan(angle)
+    ang = 0.01
+    flow, _ = rigid_flow(depth, K, make_se3(axis_angle_to_rot([0, ang, 0]), np.zeros(3)))
+    c = int(K[1, 2]), int(round(K[0, 2]))
+    assert flow[0, c[0], c[1]] == pytest.approx(-K[0, 0] * np.tan(ang), abs=0.05)
