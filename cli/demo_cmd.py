@@ -44,7 +44,7 @@ def demo_command(
         generate(seq_dir, SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1]),
                  progress=lambda n: bar.update(task, completed=n))
 
-    console.print(f"[bold]2/3[/] D3LVO (ONNX Runtime, bundled model) on it", highlight=False)
+    console.print("[bold]2/3[/] D3LVO (ONNX Runtime, bundled model) on it", highlight=False)
     seq = KittiSequence.open(seq_dir)
     poses_path = out_dir / "synthetic_heldout_poses.txt"
     with frame_progress() as bar:

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from .common import console, friendly_errors, out
+from .common import friendly_errors, out
 
 
 @friendly_errors

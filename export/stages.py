@@ -6,7 +6,6 @@ reuse frame t's encoder outputs as frame t-1 of the next pair.
 
 from __future__ import annotations
 
-import torch
 from torch import nn
 
 from models.d3lvo import D3LVO

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 
 INPUT_MODES = ("rgb", "rgb_sparse", "rgb_completion")
 COMPLETIONS = ("learned", "ipbasic")

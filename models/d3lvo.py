@@ -14,7 +14,7 @@ from .completion import DepthCompletion
 from .config import D3LVOConfig
 from .encoder import PyramidEncoder
 from .flow import ContextNet, FlowLevel, upsample_flow
-from .layers import inverse_depth, resize_like
+from .layers import inverse_depth
 from .pose import IDENTITY, PoseLevel, normalise_pose, pose_to_matrix
 
 

@@ -32,6 +32,8 @@ class PyramidEncoder(nn.Module):
         cin_r, cin_d = 3, 1
         for lvl in range(4):
             cr, cd, cf = cfg.rgb_widths[lvl], cfg.depth_widths[lvl], cfg.feature_widths[lvl]
+            # only levels the flow uses get fused features: an unused head would be a dead branch
+            used = lvl in cfg.flow_levels
             self.rgb.append(nn.Sequential(conv(cin_r, cr, stride=2), ResBlock(cr)))
             self.ca.append(ChannelAttention(cr, cfg.ca_reduction))
             if cfg.uses_depth:
@@ -39,8 +41,6 @@ class PyramidEncoder(nn.Module):
                 self.sa.append(SpatialAttention())
                 if lvl in cfg.xa_levels and used:
                     self.xa[str(lvl)] = CrossAttention(cr, cd, cfg.xa_dim, cf)
-            # only levels the flow uses get fused features: an unused head would be a dead branch
-            used = lvl in cfg.flow_levels
             self.fuse.append(conv(cr + (cd if cfg.uses_depth else 0), cf, k=1) if used else nn.Identity())
             cin_r, cin_d = cr, cd
 
