@@ -49,6 +49,16 @@ def resolve_providers(name: str) -> list[str]:
     return [wanted, "CPUExecutionProvider"] if wanted != "CPUExecutionProvider" else [wanted]
 
 
+def flowpose_feeds(input_names: list[str], prev: dict, cur: dict) -> dict:
+    """Map two frames' encoder outputs (`feat_lK`, `invdepth_lK`) onto the flow+pose inputs
+    (`feat1_lK`, `feat2_lK`, `invdepth1_lK`): suffix 1 is frame t-1, suffix 2 frame t."""
+    feeds = {}
+    for name in input_names:
+        frame, key = name.split("_", 1)
+        feeds[name] = (prev if frame.endswith("1") else cur)[f"{frame[:-1]}_{key}"]
+    return feeds
+
+
 class StageModel:
     def __init__(self, model_dir: str | Path, sc: SessionConfig = SessionConfig()):
         self.dir = Path(model_dir)
@@ -110,12 +120,8 @@ class StageModel:
         return self.run("encoder", feeds)
 
     def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        feeds = {}
-        for inp in self.sessions["flowpose"].get_inputs():
-            frame, key = inp.name.split("_", 1)  # feat1 / feat2 / invdepth1, then lK
-            src = prev if frame.endswith("1") else cur
-            feeds[inp.name] = src[f"{frame[:-1]}_{key}"]
-        return self.run("flowpose", feeds)
+        names = [i.name for i in self.sessions["flowpose"].get_inputs()]
+        return self.run("flowpose", flowpose_feeds(names, prev, cur))
 
     def end_profiling(self) -> list[str]:
         return [s.end_profiling() for s in self.sessions.values()]

@@ -18,19 +18,19 @@ import numpy as np
 from .errors import D3LVOInputError
 from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
-from .poses import read_poses
+from .poses import format_kitti_line, format_tum_line, read_poses
 from .sequence import KittiSequence
 
 
+EXACT = ".17g"  # 17 significant digits read back to the same float64: what makes --resume exact
+
+
 def format_kitti(T: np.ndarray) -> str:
-    return " ".join(f"{v:.17g}" for v in T[:3, :4].reshape(-1))
+    return format_kitti_line(T, EXACT)
 
 
 def format_tum(T: np.ndarray, stamp: float) -> str:
-    from .geometry import rot_to_quat
-
-    q = rot_to_quat(T[:3, :3], scalar_first=False)
-    return f"{stamp:.6f} " + " ".join(f"{v:.17g}" for v in (*T[:3, 3], *q))
+    return format_tum_line(T, stamp, EXACT)
 
 
 @dataclass

@@ -87,14 +87,14 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
     return Trajectory(poses, ids, stamps)
 
 
-def format_kitti_line(T: np.ndarray) -> str:
-    return " ".join(f"{v:.9e}" for v in np.asarray(T)[:3, :4].reshape(-1))
+def format_kitti_line(T: np.ndarray, spec: str = ".9e") -> str:
+    return " ".join(f"{v:{spec}}" for v in np.asarray(T)[:3, :4].reshape(-1))
 
 
-def format_tum_line(T: np.ndarray, stamp: float) -> str:
+def format_tum_line(T: np.ndarray, stamp: float, spec: str = ".9f") -> str:
     q = rot_to_quat(np.asarray(T)[:3, :3], scalar_first=False)
     t = np.asarray(T)[:3, 3]
-    return f"{stamp:.6f} " + " ".join(f"{v:.9f}" for v in (*t, *q))
+    return f"{stamp:.6f} " + " ".join(f"{v:{spec}}" for v in (*t, *q))
 
 
 def write_poses(path: str | Path, poses: np.ndarray, fmt: str = "kitti", timestamps: np.ndarray | None = None) -> None:

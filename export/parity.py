@@ -17,7 +17,7 @@ import torch
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.geometry import relative, rotation_angle_precise
-from d3lvo_deploy.onnx_model import SessionConfig, StageModel
+from d3lvo_deploy.onnx_model import SessionConfig, StageModel, flowpose_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import D3LVOConfig
@@ -157,9 +157,5 @@ def _flowpose_outputs(model, prev: dict, cur: dict) -> dict[str, np.ndarray]:
     from .stages import FlowPoseStage
 
     fp = FlowPoseStage(model)
-    args = []
-    for name in fp.input_names:
-        frame, key = name.split("_", 1)
-        src = prev if frame.endswith("1") else cur
-        args.append(torch.from_numpy(src[f"{frame[:-1]}_{key}"]))
-    return dict(zip(fp.output_names, [x.numpy() for x in fp(*args)]))
+    feeds = flowpose_feeds(fp.input_names, prev, cur)
+    return dict(zip(fp.output_names, [x.numpy() for x in fp(*(torch.from_numpy(feeds[n]) for n in fp.input_names))]))

@@ -17,7 +17,7 @@ import onnx
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.manifest import load_manifest
-from d3lvo_deploy.onnx_model import StageModel
+from d3lvo_deploy.onnx_model import StageModel, flowpose_feeds
 from d3lvo_deploy.sequence import KittiSequence
 
 from .onnx_export import check_graph, sha256
@@ -43,11 +43,8 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
             feeds["encoder"].append(enc_in)
             enc = model.run("encoder", enc_in)
             if prev is not None:
-                fp_in = {}
-                for inp in model.sessions["flowpose"].get_inputs():
-                    frame, key = inp.name.split("_", 1)
-                    fp_in[inp.name] = (prev if frame.endswith("1") else enc)[f"{frame[:-1]}_{key}"]
-                feeds["flowpose"].append(fp_in)
+                names = [inp.name for inp in model.sessions["flowpose"].get_inputs()]
+                feeds["flowpose"].append(flowpose_feeds(names, prev, enc))
             prev = enc
     return feeds
 

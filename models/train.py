@@ -182,7 +182,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 history.append(record)
                 if step % tc.ckpt_every == 0 or step == tc.steps:
                     save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
-                                    step=step, history=history, train_config=_plain(tc))
+                                    step=step, history=history, train_config=asdict(tc))
                 if on_step is not None:
                     on_step(step, record)
         epoch += 1
@@ -191,7 +191,3 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         dist.destroy_process_group()
     return record
 
-
-def _plain(tc: TrainConfig) -> dict:
-    d = asdict(tc)
-    return {k: v for k, v in d.items() if not (isinstance(v, float) and math.isnan(v))}
