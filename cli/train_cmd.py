@@ -22,7 +22,7 @@ def train_command(
     resume: Path | None = typer.Option(None, "--resume", help="Continue from this checkpoint."),
     mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
     completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
-    preset: str = typer.Option("paper", "--preset", help="paper (1216x352) | small (608x176, CPU)."),
+    preset: str = typer.Option("default", "--preset", help="default (1216x352) | small (the same network at 608x176, CPU)."),
     batch_size: int = typer.Option(4, "--batch-size"),
     lr: float = typer.Option(3e-4, "--lr"),
     val_every: int = typer.Option(500, "--val-every"),
@@ -35,8 +35,8 @@ def train_command(
     from models.config import D3LVOConfig
     from models.train import TrainConfig, train
 
-    if preset not in ("paper", "small"):
-        raise D3LVOInputError(None, f"--preset must be paper or small, not {preset!r}")
+    if preset not in ("default", "small"):
+        raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
     try:
         cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion)
     except ValueError as e:

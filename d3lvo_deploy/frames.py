@@ -37,6 +37,13 @@ class FramePreprocessor:
         """(H,W,3) uint8 RGB -> (h,w,3) float32 in [0,1] at the network resolution."""
         return self.view.apply_image(image).astype(np.float32) / 255.0
 
+    def rgb_nchw(self, image: np.ndarray) -> np.ndarray:
+        """The same values as `rgb`, as the (1,3,h,w) network input in one pass (runtime path)."""
+        crop = self.view.apply_image(image)
+        out = np.empty((1, 3) + crop.shape[:2], np.float32)
+        np.divide(crop.transpose(2, 0, 1), np.float32(255.0), out=out[0])
+        return out
+
     def depth(self, points: np.ndarray | None) -> np.ndarray:
         """(N,4) scan -> (h,w) float32 metres: sparse, IP-Basic dense, or zeros (rgb mode)."""
         if self.depth_input == "none" or points is None:

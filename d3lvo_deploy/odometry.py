@@ -88,8 +88,8 @@ class Odometry:
         t = {}
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
-        rgb = pre.rgb(image).transpose(2, 0, 1)[None].copy()
-        depth = pre.depth(clean_scan(points) if self.model.depth_input != "none" else None)[None, None].copy()
+        rgb = pre.rgb_nchw(image)
+        depth = pre.depth(clean_scan(points) if self.model.depth_input != "none" else None)[None, None]
         t["project"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
         if "completion" in self.model.sessions:

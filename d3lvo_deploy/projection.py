@@ -98,15 +98,16 @@ def project_points(points: np.ndarray, P: np.ndarray, width: int, height: int,
     """Project (N,>=3) LiDAR points with a 3x4 P; returns in-image pixel cols, rows and depths.
 
     Pixel (r, c) covers [c-0.5, c+0.5) x [r-0.5, r+0.5): KITTI puts pixel centres at integers.
+    Depth is computed first so that u, v are only computed for the ~half of a scan in front.
     """
     xyz = np.asarray(points, dtype=np.float64)[:, :3]
     P = np.asarray(P, dtype=np.float64)
-    uvw = xyz @ P[:, :3].T + P[:, 3]
-    z = uvw[:, 2]
+    z = xyz @ P[2, :3] + P[2, 3]
     front = z > min_depth
-    uvw, z = uvw[front], z[front]
-    c = np.floor(uvw[:, 0] / z + 0.5).astype(np.int64)
-    r = np.floor(uvw[:, 1] / z + 0.5).astype(np.int64)
+    xyz, z = xyz[front], z[front]
+    uv = xyz @ P[:2, :3].T + P[:2, 3]
+    c = np.floor(uv[:, 0] / z + 0.5).astype(np.int64)
+    r = np.floor(uv[:, 1] / z + 0.5).astype(np.int64)
     inside = (c >= 0) & (c < width) & (r >= 0) & (r < height)
     return c[inside], r[inside], z[inside]
 
@@ -115,13 +116,8 @@ def sparse_depth(points: np.ndarray, P: np.ndarray, width: int, height: int,
                  min_depth: float = 0.1) -> np.ndarray:
     """(H,W) float32 depth in metres, 0 where no point landed; the nearest point wins a pixel."""
     c, r, z = project_points(points, P, width, height, min_depth)
-    depth = np.zeros((height, width), dtype=np.float32)
-    if len(z) == 0:
-        return depth
-    lin = r * width + c
-    order = np.lexsort((z, lin))  # by pixel, then nearest first
-    lin, z = lin[order], z[order]
-    first = np.ones(len(lin), dtype=bool)
-    first[1:] = lin[1:] != lin[:-1]
-    depth.reshape(-1)[lin[first]] = z[first]
-    return depth
+    depth = np.full(height * width, np.inf, dtype=np.float32)
+    # float32 rounding is monotonic, so the minimum of the rounded depths is the nearest point's
+    np.minimum.at(depth, r * width + c, z.astype(np.float32))
+    depth[depth == np.inf] = 0.0
+    return depth.reshape(height, width)

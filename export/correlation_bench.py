@@ -16,6 +16,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from models.config import D3LVOConfig
 from models.correlation import CORRELATIONS, cost_volume
 
 
@@ -52,7 +53,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--height", type=int, default=352)
     ap.add_argument("--width", type=int, default=1216)
-    ap.add_argument("--channels", type=int, nargs=3, default=(32, 64, 96), help="feature widths at h/4, h/8, h/16")
+    ap.add_argument("--channels", type=int, nargs=3, default=D3LVOConfig().feature_widths[1:],
+                    help="feature widths at h/4, h/8, h/16 (default: the default config's)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs", type=int, default=10)
     a = ap.parse_args()

@@ -33,7 +33,7 @@ class D3LVO(nn.Module):
             self.flow[str(lvl)] = FlowLevel(cfg, ch, coarsest=i == 0)
             self.pose[str(lvl)] = PoseLevel(cfg, cfg.flow_hidden[1] + 2 + (1 if cfg.uses_depth else 0))
         finest = cfg.flow_levels[-1]
-        self.context = ContextNet(cfg.flow_hidden[1] + 2) if cfg.context else None
+        self.context = ContextNet(cfg.flow_hidden[1] + 2, cfg.context_width) if cfg.context else None
         self.register_buffer("rgb_mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(cfg.rgb_std).view(1, 3, 1, 1), persistent=False)
         self._finest = finest

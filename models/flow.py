@@ -1,7 +1,7 @@
 """Depth-aware optical flow, coarse to fine (paper Sec. III-D, eq. 6-7).
 
 At each level: warp F2 by the upsampled coarser flow, build the cost volume, process it with
-cascaded 3x3 convs + ReLU, and let F (1x1 convs 128-64-2 with BN + LeakyReLU) predict the flow
+a 1x1 and a 3x3 conv + ReLU, and let F (1x1 convs 128-64-2 with BN + LeakyReLU) predict the flow
 (coarsest level, eq. 6: u = F * G(D)) or its residual (eq. 7: u = up(u') + G(D) * du).
 G(D) expands depth to 32 channels, then a 1x1 conv and 2*sigmoid: a per-pixel factor in (0, 2),
 1 at initialisation, that scales flow magnitude by scene depth. A context net with dilated
@@ -56,7 +56,9 @@ class FlowLevel(nn.Module):
         self.cfg, self.coarsest = cfg, coarsest
         n_disp = (2 * cfg.search_range + 1) ** 2
         self.cost = nn.Sequential(
-            nn.Conv2d(n_disp, cfg.cost_width, 3, padding=1), nn.ReLU(inplace=True),
+            # 1x1 first: mixing the 81 matching scores per pixel needs no neighbourhood, and a 3x3
+            # over 81 channels was the single largest conv of the flow stage at h/4
+            nn.Conv2d(n_disp, cfg.cost_width, 1), nn.ReLU(inplace=True),
             nn.Conv2d(cfg.cost_width, cfg.cost_width, 3, padding=1), nn.ReLU(inplace=True),
         )
         h1, h2 = cfg.flow_hidden

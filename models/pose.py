@@ -24,9 +24,10 @@ class PoseLevel(nn.Module):
     def __init__(self, cfg: D3LVOConfig, cin: int):
         super().__init__()
         self.pool = cfg.pose_pool
-        self.enc = nn.Sequential(conv(cin, 64, stride=2), conv(64, 64, stride=2))
+        pw = cfg.pose_width
+        self.enc = nn.Sequential(conv(cin, pw, stride=2), conv(pw, pw, stride=2))
         layers: list[nn.Module] = []
-        width = 64 * cfg.pose_pool[0] * cfg.pose_pool[1] + 7
+        width = pw * cfg.pose_pool[0] * cfg.pose_pool[1] + 7
         for hidden in cfg.pose_hidden:
             layers += [nn.Linear(width, hidden), nn.LeakyReLU(0.1, inplace=True), nn.Dropout(cfg.dropout)]
             width = hidden

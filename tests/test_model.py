@@ -6,7 +6,7 @@ import torch
 
 from models.attention import ChannelAttention, CrossAttention, SpatialAttention
 from models.config import D3LVOConfig
-from models.correlation import correlation_slices, correlation_stacked, cost_volume, l2_normalise
+from models.correlation import correlation_slices, correlation_stacked, correlation_tiled, cost_volume, l2_normalise
 from models.d3lvo import D3LVO
 from models.flow import upsample_flow, warp
 from models.layers import adaptive_avg_pool
@@ -22,13 +22,16 @@ def _inputs(cfg, b=1):
     return rgb, rgb.roll(3, dims=3), depth, depth.roll(3, dims=3)
 
 
-def test_shapes_at_paper_resolution():
-    cfg = D3LVOConfig()
+@pytest.mark.parametrize("levels", [(3, 2), (3, 2, 1)])
+def test_shapes_at_paper_resolution(levels):
+    cfg = D3LVOConfig(flow_levels=levels)
     model = D3LVO(cfg).eval()
     with torch.no_grad():
         out = model(*_inputs(cfg))
-    assert [tuple(f.shape[-2:]) for f in out["flows"]] == [(22, 76), (44, 152), (88, 304)]
-    assert out["poses"].shape == (1, 3, 7) and out["weights"].shape == (1, 3)
+    expect = {3: (22, 76), 2: (44, 152), 1: (88, 304)}
+    assert [tuple(f.shape[-2:]) for f in out["flows"]] == [expect[lvl] for lvl in levels]
+    n = len(levels)
+    assert out["poses"].shape == (1, n, 7) and out["weights"].shape == (1, n)
     assert out["dense1"].shape == (1, 1, 352, 1216)
     assert torch.all(out["dense1"] >= cfg.min_depth) and torch.all(out["dense1"] <= cfg.max_depth)
     torch.testing.assert_close(out["weights"].sum(1), torch.ones(1))
@@ -72,11 +75,14 @@ def _loop_correlation(f1, f2, s):
     return out
 
 
-@pytest.mark.parametrize("impl", [correlation_slices, correlation_stacked])
-def test_correlation_matches_loops(impl):
-    f1 = torch.randn(2, 5, 7, 11, dtype=torch.float64)
-    f2 = torch.randn(2, 5, 7, 11, dtype=torch.float64)
+@pytest.mark.parametrize("impl", [correlation_slices, correlation_stacked, correlation_tiled,
+                                  lambda a, b, s: correlation_tiled(a, b, s, tile=4)])
+@pytest.mark.parametrize("hw", [(7, 11), (5, 16), (9, 37)])  # width below, at and across tile sizes
+def test_correlation_matches_loops(impl, hw):
+    f1 = torch.randn(2, 5, *hw, dtype=torch.float64)
+    f2 = torch.randn(2, 5, *hw, dtype=torch.float64)
     torch.testing.assert_close(impl(f1, f2, 4), _loop_correlation(f1, f2, 4))
+    torch.testing.assert_close(impl(f1, f2, 2), _loop_correlation(f1, f2, 2))
     assert impl(f1, f2, 4).shape[1] == 81
 
 
