@@ -33,7 +33,7 @@ def train_command(
 ) -> None:
     """Train D3LVO; reports loss, and t_rel/r_rel/ATE on --val sequences through the evaluator."""
     from models.config import D3LVOConfig
-    from models.train import TrainConfig, train
+    from models.train import TrainConfig, best_path, train
 
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
@@ -58,6 +58,8 @@ def train_command(
                     t = "n/a" if m["t_rel"] is None else f"{m['t_rel']:.2f} %"
                     console.print(f"step {step} val {name}: t_rel {t}, ATE {m['ate']:.3f} m, "
                                   f"RPE {m['rpe_t']:.3f} m / {m['rpe_r']:.3f} deg", highlight=False)
+                if rec.get("best"):
+                    console.print(f"  best so far: saved {best_path(out)}", highlight=False)
 
         rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
     if rank0:

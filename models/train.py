@@ -39,6 +39,7 @@ class TrainConfig:
     batch_size: int = 4
     lr: float = 3e-4
     weight_decay: float = 1e-4
+    balance_lr: float = 2e-2  # for the loss balance terms s_t, s_q
     grad_clip: float = 5.0
     warmup: int = 50  # linear warm-up steps, then cosine decay to 5 % of lr
     val_every: int = 500
@@ -82,6 +83,17 @@ def validate(model: D3LVO, seqs: list[str]) -> dict:
     return out
 
 
+def val_score(val: dict) -> float:
+    """Lower is better: mean t_rel over the validation sequences (ATE where a path is too short)."""
+    return sum(m["t_rel"] if m["t_rel"] is not None else m["ate"] for m in val.values()) / max(len(val), 1)
+
+
+def best_path(out: str | Path) -> Path:
+    """Where training keeps the checkpoint with the best validation score: `<out stem>.best.pt`."""
+    out = Path(out)
+    return out.with_name(out.stem + ".best" + out.suffix)
+
+
 def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     """L1 (m) against dense depth where the sequence has it (synthetic depth_2/), within 80 m."""
     if "dense1" not in out:
@@ -123,18 +135,28 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     model = D3LVO(cfg).to(device)
     criterion = PoseLoss(tc.loss).to(device)
     params = list(model.parameters()) + list(criterion.parameters())
-    opt = torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay)
+    # s_t, s_q must travel to log(typical error) (about -9 for frame-to-frame rotation): at the
+    # network's lr Adam moves them ~lr per step, far too slowly for a short run, and weight decay
+    # would pull them to 0; they get their own lr and no decay.
+    opt = torch.optim.AdamW([
+        {"params": list(model.parameters()), "lr": tc.lr, "weight_decay": tc.weight_decay},
+        {"params": list(criterion.parameters()), "lr": tc.balance_lr, "weight_decay": 0.0},
+    ])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc.warmup, tc.steps))
     step, history = 0, []
     if resume:
         ck = load_checkpoint(resume, expect=cfg)
         model.load_state_dict(ck["model"])
         criterion.load_state_dict(ck["loss"])
-        opt.load_state_dict(ck["optimizer"])
+        try:
+            opt.load_state_dict(ck["optimizer"])
+        except (ValueError, KeyError):
+            raise D3LVOInputError(resume, "its optimizer state does not fit this trainer (older toolkit "
+                                          "version?); train afresh instead of --resume") from None
         step, history = ck["step"], ck.get("history", [])
         sched.last_epoch = step
-        for g in opt.param_groups:
-            g["lr"] = tc.lr * lr_factor(step, tc.warmup, tc.steps)
+        for g, base in zip(opt.param_groups, sched.base_lrs):
+            g["lr"] = base * lr_factor(step, tc.warmup, tc.steps)
 
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
@@ -148,6 +170,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True)
 
     record: dict = {}
+    scored = [h for h in history if "val" in h]
+    best = min((val_score(h["val"]) for h in scored), default=math.inf)
     epoch = step // max(len(loader), 1)
     t0 = time.perf_counter()
     while step < tc.steps:
@@ -179,6 +203,12 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
             if rank == 0:
                 if tc.val and (step % tc.val_every == 0 or step == tc.steps):
                     record["val"] = validate(model, tc.val)
+                    if val_score(record["val"]) < best:
+                        # long CPU runs overfit small synthetic sets: keep the best validated weights
+                        best = val_score(record["val"])
+                        record["best"] = True
+                        save_checkpoint(best_path(tc.out), model, cfg, loss=criterion.state_dict(), step=step,
+                                        history=history + [record], train_config=asdict(tc))
                 history.append(record)
                 if step % tc.ckpt_every == 0 or step == tc.steps:
                     save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),

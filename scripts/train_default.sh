@@ -31,13 +31,14 @@ done
 val=(--val "$OUT/data/heldout_09")
 
 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.pt" --steps "$STEPS" --preset small \
-  --batch-size 4 --lr 5e-4 --val-every 500 --ckpt-every 50 --seed 0 --workers 1
-# ship weights + config only (no optimizer state), and export from exactly that file
-.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/default.pt', 'd3lvo_deploy/default_model/default.pt')"
+  --batch-size 4 --lr 5e-4 --val-every 250 --ckpt-every 50 --seed 0 --workers 1
+# ship the weights that scored best on the validation sequence (heldout_09; heldout_10 stays unseen),
+# weights + config only (no optimizer state), and export from exactly that file
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/default.best.pt', 'd3lvo_deploy/default_model/default.pt')"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 
 if [ "${ABLATION:-1}" = 1 ]; then
   "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/rgb.pt" --steps "$STEPS" --preset small --mode rgb \
-    --batch-size 4 --lr 5e-4 --val-every 500 --ckpt-every 50 --seed 0 --workers 1
-  "$D3LVO" export --ckpt "$OUT/rgb.pt" --out "$OUT/rgb_onnx"
+    --batch-size 4 --lr 5e-4 --val-every 250 --ckpt-every 50 --seed 0 --workers 1
+  "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
 fi

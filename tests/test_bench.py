@@ -52,3 +52,20 @@ def test_cli_bench_from_checkpoint(small_model, small_synth):
     r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch"])
     assert r.exit_code == 0, r.output
     assert "frames/s" in r.output
+
+
+def test_cli_bench_bundled_model_at_another_size(small_synth):
+    """--height/--width without --ckpt: the bundled checkpoint, re-exported at that size."""
+    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--seq-dir", str(small_synth), "--runs", "1",
+                            "--threads", "1", "--no-torch", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["size"] == "256x64"
+
+
+def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["bench", "--height", "64"])
+    assert r.exit_code != 0 and "--height and --width together" in r.output
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--height", "64", "--width", "256"])
+    assert r.exit_code != 0 and "fixed size" in r.output

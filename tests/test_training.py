@@ -170,3 +170,24 @@ def test_rigid_flow_hand_case():
     flow, _ = rigid_flow(depth, K, make_se3(axis_angle_to_rot([0, ang, 0]), np.zeros(3)))
     c = int(K[1, 2]), int(round(K[0, 2]))
     assert flow[0, c[0], c[1]] == pytest.approx(-K[0, 0] * np.tan(ang), abs=0.05)
+
+
+def test_val_score_and_best_path():
+    from models.train import best_path, val_score
+
+    # mean t_rel; a sequence too short for t_rel counts with its ATE
+    assert val_score({"a": {"t_rel": 4.0, "ate": 9.0}, "b": {"t_rel": None, "ate": 2.0}}) == 3.0
+    assert best_path("runs/x/default.pt").as_posix() == "runs/x/default.best.pt"
+
+
+def test_training_keeps_the_best_validated_checkpoint(small_synth, tmp_path):
+    from models.train import TrainConfig, best_path, train, val_score
+
+    cfg = D3LVOConfig.small(height=64, width=224)
+    tc = TrainConfig(data=[str(small_synth)], val=[str(small_synth)], out=str(tmp_path / "m.pt"), steps=4,
+                     batch_size=2, val_every=1, ckpt_every=4)
+    train(cfg, tc)
+    hist = load_checkpoint(tmp_path / "m.pt")["history"]
+    scores = [val_score(h["val"]) for h in hist]
+    best = load_checkpoint(best_path(tc.out))
+    assert best["step"] == 1 + scores.index(min(scores))  # the first minimum: later ties do not replace it
