@@ -111,6 +111,12 @@ class PairDataset(Dataset):
         gt = loader.seq.ground_truth.poses
         return change_frame(relative(gt[i - 1], gt[i]), loader.seq.calib.T_cam2_cam0)
 
+    def identity_errors(self) -> tuple[float, float]:
+        """Mean |t|_1 and |q - q_identity|^2 over all pairs: eq. 11's error terms for a network that
+        predicts no motion. Cheap: poses only, no images."""
+        v = np.stack([pose_vector(self.relative_pose(k, i)) for k, i in self.items]).astype(np.float64)
+        return float(np.abs(v[:, :3]).sum(1).mean()), float(((v[:, 3:] - [1.0, 0, 0, 0]) ** 2).sum(1).mean())
+
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
         k, i = self.items[idx]
         L = self.loaders[k]

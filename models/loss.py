@@ -18,6 +18,10 @@ from torch import nn
 class LossConfig:
     alphas: tuple[float, ...] = (0.2, 0.4, 0.8, 1.6)  # coarse to fine; the last len(levels) are used
     alpha_final: float = 1.6
+    # "data": s_t, s_q start at log of the no-motion predictor's error on the training pairs, so
+    # both terms of eq. 11 start at weight ~1/error. Frame-to-frame rotations are ~0.5 deg, so
+    # |dq|^2 ~ 2e-5 and PoseNet's s_q = -3 (for absolute poses) leaves rotation ~1000x underweighted.
+    balance_init: str = "data"  # data | config (use s_t_init, s_q_init)
     s_t_init: float = 0.0
     s_q_init: float = -3.0
     completion_weight: float = 0.05  # L1 (m) on depth GT where the data has it (synthetic depth_2)
@@ -35,6 +39,12 @@ class PoseLoss(nn.Module):
         self.cfg = cfg
         self.s_t = nn.Parameter(torch.tensor(float(cfg.s_t_init)))
         self.s_q = nn.Parameter(torch.tensor(float(cfg.s_q_init)))
+
+    @torch.no_grad()
+    def init_balance(self, t_err: float, q_err: float) -> None:
+        """Start s_t, s_q at log of the given typical errors (see LossConfig.balance_init)."""
+        self.s_t.fill_(float(torch.log(torch.tensor(max(t_err, 1e-8)))))
+        self.s_q.fill_(float(torch.log(torch.tensor(max(q_err, 1e-12)))))
 
     def level(self, pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
         """Eq. 11 for (B,7) predictions against (B,7) ground truth, batch mean."""

@@ -166,6 +166,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         sampler = DistributedSampler(data, num_replicas=world, rank=rank, seed=tc.seed, drop_last=True)
     else:
         sampler = RandomSampler(data, generator=torch.Generator().manual_seed(tc.seed))
+    if not resume and tc.loss.balance_init == "data":
+        criterion.init_balance(*data.identity_errors())
     batch = min(tc.batch_size, max(len(data) // world, 1))
     loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True)
 

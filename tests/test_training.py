@@ -191,3 +191,21 @@ def test_training_keeps_the_best_validated_checkpoint(small_synth, tmp_path):
     scores = [val_score(h["val"]) for h in hist]
     best = load_checkpoint(best_path(tc.out))
     assert best["step"] == 1 + scores.index(min(scores))  # the first minimum: later ties do not replace it
+
+
+def test_balance_terms_start_at_the_no_motion_errors(small_synth):
+    """s_t, s_q start at log of eq. 11's error terms for a network that predicts identity."""
+    from models.data import PairDataset
+    from models.loss import PoseLoss
+
+    data = PairDataset([small_synth], D3LVOConfig.small(height=64, width=224))
+    gt = torch.stack([data[i]["pose"] for i in range(len(data))]).double()
+    ident = torch.tensor([0.0, 0, 0, 1, 0, 0, 0], dtype=torch.float64)
+    t_err = (gt[:, :3] - ident[:3]).abs().sum(1).mean()
+    q_err = (gt[:, 3:] - ident[3:]).pow(2).sum(1).mean()
+    loss = PoseLoss()
+    loss.init_balance(*data.identity_errors())
+    assert abs(float(loss.s_t) - float(torch.log(t_err))) < 1e-4
+    assert abs(float(loss.s_q) - float(torch.log(q_err))) < 1e-3
+    # at those values each term of eq. 11 contributes error * exp(-s) = 1 for the identity predictor
+    assert abs(float(t_err * torch.exp(-loss.s_t.double())) - 1.0) < 1e-4
