@@ -26,11 +26,29 @@ def _bench_frames(tmp: Path) -> Path:
     return generate(tmp / "bench_seq", SynthConfig(frames=6, seed=321))
 
 
+def _default_network_checkpoint(tmp: Path, height: int, width: int) -> Path:
+    """Speed does not depend on weight values, so the default network is timed with seeded random ones."""
+    import torch
+
+    from models.checkpoint import save_checkpoint
+    from models.config import D3LVOConfig
+    from models.d3lvo import D3LVO
+
+    try:
+        cfg = D3LVOConfig(height=height, width=width)
+    except ValueError as e:
+        raise D3LVOInputError(None, str(e)) from None
+    torch.manual_seed(0)
+    path = tmp / "default_network.pt"
+    save_checkpoint(path, D3LVO(cfg), cfg)
+    return path
+
+
 @friendly_errors
 def bench_command(
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
     ckpt: Path | None = typer.Option(None, "--ckpt", help="Or a checkpoint: exported to a temporary folder first."),
-    height: int | None = typer.Option(None, "--height", help="Export the checkpoint (default: the bundled one) at this height."),
+    height: int | None = typer.Option(None, "--height", help="Export --ckpt at this height; without --ckpt, time the default network (D3LVOConfig()) at this size."),
     width: int | None = typer.Option(None, "--width", help="... and this width (e.g. --height 352 --width 1216)."),
     threads: int = typer.Option(2, "--threads", help="Threads for onnxruntime and torch."),
     runs: int = typer.Option(20, "--runs", help="Timed frames after warm-up."),
@@ -52,11 +70,11 @@ def bench_command(
     if height is not None and onnx is not None:
         raise D3LVOInputError(onnx, "an exported folder has a fixed size; use --ckpt (or neither) with --height/--width")
     if ckpt is None and onnx is None and height is not None:
-        from d3lvo_deploy.bundled import bundled_checkpoint
-
-        ckpt = bundled_checkpoint()  # the default model's weights, exported at the asked size
+        ckpt = "default"  # the default network (D3LVOConfig()) at that size, seeded random weights
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
+        if ckpt == "default":
+            ckpt = _default_network_checkpoint(tmp, height, width)
         if ckpt is not None:
             from export.onnx_export import ExportConfig, export_checkpoint
 
@@ -90,7 +108,8 @@ def bench_command(
                     torch_t = bench_torch(D3LVOConfig.from_dict(manifest["model_config"]), seq, threads, runs).summary()
     res = {
         "model": str(onnx), "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
-        "precision": manifest.get("precision", "fp32"), "threads": threads, "runs": runs, "frames_from": str(seq.root),
+        "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
+        "threads": threads, "runs": runs, "frames_from": str(seq.root),
         "stages_ms": ort_t, "total_ms_median": ort_t["total"]["median"],
         "fps": 1000.0 / ort_t["total"]["median"], "rss_mb": rss,
     }

@@ -14,10 +14,3 @@ def bundled_model_dir() -> Path:
         raise D3LVOInputError(BUNDLED, "no bundled default model in this install; pass --onnx DIR")
     return BUNDLED
 
-
-def bundled_checkpoint() -> Path:
-    """The checkpoint the bundled ONNX was exported from (for re-export at another size)."""
-    path = BUNDLED / "default.pt"
-    if not path.is_file():
-        raise D3LVOInputError(path, "the bundled checkpoint is missing from this install")
-    return path

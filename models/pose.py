@@ -3,7 +3,8 @@
 Each flow level l has a pose net P that sees the level's flow features, the flow, depth D_l and
 the running pose T_l, and predicts a residual: T_{l+1} = T_l + dT_l (eq. 8-9). A pose is a
 7-vector (translation in metres, quaternion w, x, y, z); the sum is taken on that vector, as
-the paper writes it, and quaternions are normalised when read. P: two strided convs to a fixed
+the paper writes it, with the quaternion renormalised after each step (and its delta scaled to
+the size of frame-to-frame rotations). P: two strided convs to a fixed
 grid (adaptive pooling, so any input size works), then the MLP 256-128-64 with LeakyReLU and
 dropout. Each level also emits a confidence logit; softmax over levels gives the weights w_l of
 T_final = sum_l w_l T_l (eq. 10).
@@ -18,6 +19,9 @@ from .config import D3LVOConfig
 from .layers import adaptive_avg_pool, conv
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+# frame-to-frame rotations are ~0.5 deg, i.e. ~4e-3 in quaternion units, while translations are
+# ~1 m: the quaternion part of dT is scaled so that the head's unit outputs mean ~1 deg
+ROT_SCALE = 0.01
 
 
 class PoseLevel(nn.Module):
@@ -40,7 +44,11 @@ class PoseLevel(nn.Module):
     def forward(self, x: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         z = adaptive_avg_pool(self.enc(x), self.pool).flatten(1)
         h = self.mlp(torch.cat([z, pose], 1))
-        return pose + self.delta(h), self.conf(h)
+        d = self.delta(h)
+        d = torch.cat([d[:, :3], d[:, 3:] * ROT_SCALE], 1)
+        # renormalised after each step: left free, training inflated |q| to ~3, which shrinks the
+        # normalised rotation (and its gradient) 3x and froze the predicted rotation
+        return normalise_pose(pose + d), self.conf(h)
 
 
 def normalise_pose(p: torch.Tensor) -> torch.Tensor:

@@ -3,12 +3,12 @@
 # Data: synthetic sequences from `d3lvo synth`, motion replayed from the real KITTI GT 00-08
 # (training) and 09-10 (held-out validation, other seeds). Takes about 1 h 15 min on 2 CPU cores
 # (data 10 min, each model ~30 min); sequences already in $OUT/data are reused.
-#   GT=path/to/kitti_gt_poses OUT=runs/default STEPS=1500 bash scripts/train_default.sh
+#   GT=path/to/kitti_gt_poses OUT=runs/default STEPS=1000 bash scripts/train_default.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 GT=${GT:-../shared/data/kitti_gt_poses}
 OUT=${OUT:-runs/default}
-STEPS=${STEPS:-1500}
+STEPS=${STEPS:-1000}
 FRAMES=${FRAMES:-200}
 SIZE=${SIZE:-620x188}
 D3LVO=${D3LVO:-.venv/bin/d3lvo}

@@ -54,13 +54,16 @@ def test_cli_bench_from_checkpoint(small_model, small_synth):
     assert "frames/s" in r.output
 
 
-def test_cli_bench_bundled_model_at_another_size(small_synth):
-    """--height/--width without --ckpt: the bundled checkpoint, re-exported at that size."""
+def test_cli_bench_default_network_at_another_size(small_synth):
+    """--height/--width without --ckpt: the default network (D3LVOConfig()) exported at that size."""
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--seq-dir", str(small_synth), "--runs", "1",
                             "--threads", "1", "--no-torch", "--json"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
     assert d["size"] == "256x64"
+    from models.config import D3LVOConfig
+
+    assert d["flow_levels"] == list(D3LVOConfig().flow_levels)
 
 
 def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
