@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Reproduces the bundled default model (d3lvo_deploy/default_model) and its rgb-only ablation.
 # Data: synthetic sequences from `d3lvo synth`, motion replayed from the real KITTI GT 00-08
-# (training) and 09-10 (held-out validation, other seeds). Takes about 1 h 15 min on 2 CPU cores
-# (data 10 min, each model ~30 min); sequences already in $OUT/data are reused.
+# (training) and 09-10 (held-out validation, other seeds). Takes about 55 min on 2 CPU cores
+# (data 10 min, default model 25 min, rgb ablation 15 min); sequences already in $OUT/data are reused.
 #   GT=path/to/kitti_gt_poses OUT=runs/default STEPS=1000 bash scripts/train_default.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
