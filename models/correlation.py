@@ -44,7 +44,8 @@ def correlation_stacked(f1: torch.Tensor, f2: torch.Tensor, search: int) -> torc
 
 def correlation_tiled(f1: torch.Tensor, f2: torch.Tensor, search: int, tile: int = TILE) -> torch.Tensor:
     """Per row tile and dy: GEMM of the tile's pixels with its reachable window, then the band."""
-    b, c, h, w = (int(s) for s in f1.shape)  # python ints: the export freezes them as constants
+    c, h, w = (int(s) for s in f1.shape[1:])  # python ints: the export freezes them as constants
+    b = -1  # the batch stays free (export with --dynamic-batch)
     n, t = 2 * search + 1, max(tile, 2 * search)  # a tile's window borrows 2S columns of the next tile
     nt = -(-w // t)
     wt = nt * t
