@@ -69,11 +69,10 @@ def bench_command(
         raise D3LVOInputError(None, "give --height and --width together")
     if height is not None and onnx is not None:
         raise D3LVOInputError(onnx, "an exported folder has a fixed size; use --ckpt (or neither) with --height/--width")
-    if ckpt is None and onnx is None and height is not None:
-        ckpt = "default"  # the default network (D3LVOConfig()) at that size, seeded random weights
+    default_network = ckpt is None and onnx is None and height is not None
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
-        if ckpt == "default":
+        if default_network:
             ckpt = _default_network_checkpoint(tmp, height, width)
         if ckpt is not None:
             from export.onnx_export import ExportConfig, export_checkpoint
