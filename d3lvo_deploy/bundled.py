@@ -13,4 +13,3 @@ def bundled_model_dir() -> Path:
     if not (BUNDLED / "manifest.json").is_file():
         raise D3LVOInputError(BUNDLED, "no bundled default model in this install; pass --onnx DIR")
     return BUNDLED
-

@@ -112,7 +112,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     prev_t = prev_o = None
     chain_t, chain_o = [], []
     for i in range(n):
-        rgb = pre.rgb(seq.image(i)).transpose(2, 0, 1)[None].copy()
+        rgb = pre.rgb_nchw(seq.image(i))
         depth = pre.depth(seq.scan(i) if cfg.uses_depth else None)[None, None].copy()
         t_rgb, t_depth = torch.from_numpy(rgb), torch.from_numpy(depth)
         # stage: completion

@@ -35,7 +35,7 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
                                        model.config["max_depth"])
         prev = None
         for i in range(min(len(seq), max_frames // len(seq_dirs) + 1)):
-            rgb = pre.rgb(seq.image(i)).transpose(2, 0, 1)[None].copy()
+            rgb = pre.rgb_nchw(seq.image(i))
             depth = pre.depth(seq.scan(i) if model.depth_input != "none" else None)[None, None].copy()
             if "completion" in model.sessions:
                 feeds["completion"].append({"rgb": rgb, "sparse_depth": depth})
