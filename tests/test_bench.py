@@ -72,3 +72,33 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
     assert r.exit_code != 0 and "--height and --width together" in r.output
     r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--height", "64", "--width", "256"])
     assert r.exit_code != 0 and "fixed size" in r.output
+
+
+def test_conv_bench_finds_every_conv_once():
+    """Each Conv2d of the network runs once per frame pair (complete, encode, flow_pose), so the
+    recorded calls add up to the model's Conv2d count, and the first RGB conv has its known shape."""
+    import torch
+
+    from export.conv_bench import ConvShape, conv_layers
+    from models.config import D3LVOConfig
+    from models.d3lvo import D3LVO
+
+    cfg = D3LVOConfig(height=64, width=128)
+    layers = conv_layers(cfg)
+    n_modules = sum(isinstance(m, torch.nn.Conv2d) for m in D3LVO(cfg).modules())
+    assert sum(layers.values()) == n_modules
+    first_rgb = ConvShape(3, cfg.rgb_widths[0], 3, 2, 1, 1, 64, 128)
+    assert layers[first_rgb] == 1
+    assert first_rgb.gmac == 3 * cfg.rgb_widths[0] * 9 * 32 * 64 / 1e9
+
+
+def test_conv_bench_table_totals(capsys):
+    from export.conv_bench import main
+
+    main(["--height", "32", "--width", "64", "--threads", "1", "--runs", "1"])
+    lines = capsys.readouterr().out.splitlines()
+    rows = [ln.split() for ln in lines[2:-1]]
+    total = lines[-1].split()
+    calls = sum(int(r[4]) for r in rows)  # label is 4 tokens: "3->16 3x3/2 at 64x32"
+    assert total[2] == str(calls)
+    assert abs(sum(float(r[6]) for r in rows) - float(total[4])) < 0.05 * len(rows)
