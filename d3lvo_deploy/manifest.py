@@ -13,7 +13,8 @@ from pathlib import Path
 from .errors import D3LVOInputError
 
 MANIFEST_FORMAT = "d3lvo-onnx"
-MANIFEST_VERSION = 1
+# 2: stages take normalised RGB and inverse depth (1 took RGB in [0, 1] and metres)
+MANIFEST_VERSION = 2
 STANDARD_DOMAINS = ("", "ai.onnx")
 STAGES = ("completion", "encoder", "flowpose")
 
@@ -38,7 +39,8 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
     if not isinstance(m, dict) or m.get("format") != MANIFEST_FORMAT:
         raise D3LVOInputError(path, f"not a D3LVO manifest (format must be {MANIFEST_FORMAT!r})")
     if m.get("version") != MANIFEST_VERSION:
-        raise D3LVOInputError(path, f"manifest version {m.get('version')}, this runtime reads {MANIFEST_VERSION}")
+        raise D3LVOInputError(path, f"manifest version {m.get('version')}, this runtime reads {MANIFEST_VERSION}: "
+                                    "re-export the checkpoint with `d3lvo export`")
     stages = m.get("stages", {})
     for name in ("encoder", "flowpose"):
         if name not in stages:

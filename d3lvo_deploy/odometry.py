@@ -74,8 +74,7 @@ class Odometry:
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
         h, w = image.shape[:2]
         if self.pre is None:
-            self.pre = FramePreprocessor.create(self.calib, w, h, self.model.width, self.model.height,
-                                                self.model.depth_input, self.model.config["max_depth"])
+            self.pre = FramePreprocessor.for_model(self.calib, w, h, self.model.config, self.model.depth_input)
         elif (w, h) != (self.pre.view.src_width, self.pre.view.src_height):
             raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were "
                                         f"{self.pre.view.src_width}x{self.pre.view.src_height}")
@@ -88,15 +87,15 @@ class Odometry:
         t = {}
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
-        rgb = pre.rgb_nchw(image)
-        depth = pre.depth(clean_scan(points) if self.model.depth_input != "none" else None)[None, None]
+        rgb = pre.rgb_input(image)
+        inv = pre.invdepth_input(clean_scan(points) if self.model.depth_input != "none" else None)
         t["project"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
         if "completion" in self.model.sessions:
-            depth = self.model.complete(rgb, depth)
+            inv = self.model.complete(rgb, inv)
         t["completion"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
-        enc = self.model.encode(rgb, depth if self.model.depth_input != "none" else None)
+        enc = self.model.encode(rgb, inv)
         t["encoder"] = (time.perf_counter() - t0) * 1000
         self.last_timing = FrameTiming(t)
         return enc

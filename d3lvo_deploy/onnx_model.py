@@ -1,6 +1,7 @@
 """The exported stages behind onnxruntime sessions, checked against manifest.json.
 
-Arrays in and out are numpy float32 NCHW. `encode` returns a dict keyed by the manifest's output
+Arrays in and out are numpy float32 NCHW: normalised RGB and inverse depth, as
+d3lvo_deploy.frames.FramePreprocessor makes them (`dense_depth_m` converts to metres). `encode` returns a dict keyed by the manifest's output
 names; `flow_pose` maps frame t-1's encoder outputs (`feat_lK`, `invdepth_lK`) and frame t's
 (`feat_lK`) onto the flow+pose graph's inputs (`feat1_lK`, `feat2_lK`, `invdepth1_lK`).
 """
@@ -110,14 +111,20 @@ class StageModel:
         outs = self.sessions[stage].run(None, feeds)
         return dict(zip(self.output_names(stage), outs))
 
-    def complete(self, rgb: np.ndarray, sparse: np.ndarray) -> np.ndarray:
-        return self.run("completion", {"rgb": rgb, "sparse_depth": sparse})["dense_depth"]
+    def complete(self, rgb_norm: np.ndarray, sparse_inv: np.ndarray) -> np.ndarray:
+        """Normalised RGB + sparse inverse depth -> dense inverse depth (see export.stages)."""
+        return self.run("completion", {"rgb_norm": rgb_norm, "sparse_invdepth": sparse_inv})["dense_invdepth"]
 
-    def encode(self, rgb: np.ndarray, depth: np.ndarray | None) -> dict[str, np.ndarray]:
-        feeds = {"rgb": rgb}
-        if depth is not None:
-            feeds["depth"] = depth
+    def encode(self, rgb_norm: np.ndarray, invdepth: np.ndarray | None) -> dict[str, np.ndarray]:
+        feeds = {"rgb_norm": rgb_norm}
+        if invdepth is not None:
+            feeds["invdepth"] = invdepth
         return self.run("encoder", feeds)
+
+    def dense_depth_m(self, invdepth: np.ndarray) -> np.ndarray:
+        """Inverse depth (e.g. `complete`'s output) -> metres, 0 where there is none."""
+        min_d = np.float32(self.config["min_depth"])
+        return np.divide(min_d, invdepth, out=np.zeros_like(invdepth), where=invdepth > 0)
 
     def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         names = [i.name for i in self.sessions["flowpose"].get_inputs()]

@@ -23,6 +23,7 @@ from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DO
 from d3lvo_deploy.manifest import sha256_file as sha256
 from models.checkpoint import build_model, load_checkpoint
 from models.d3lvo import D3LVO
+from models.layers import inverse_depth
 
 from .stages import CompletionStage, EncoderStage, FlowPoseStage
 
@@ -66,17 +67,18 @@ def _io_spec(model: onnx.ModelProto) -> tuple[list[dict], list[dict]]:
 
 def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor, ...]]:
     g = torch.Generator().manual_seed(0)
-    rgb = torch.rand(1, 3, h, w, generator=g)
+    rgb = model.normalise(torch.rand(1, 3, h, w, generator=g))
     sparse = torch.rand(1, 1, h, w, generator=g) * 60 * (torch.rand(1, 1, h, w, generator=g) > 0.93)
+    inv = inverse_depth(sparse, model.cfg.min_depth)
     with torch.no_grad():
-        dense = model.complete(rgb, sparse) if model.cfg.uses_depth else None
+        dense = model.complete_inverse(rgb, inv) if model.cfg.uses_depth else None
         enc = EncoderStage(model)
         enc_out = enc(rgb, dense) if dense is not None else enc(rgb)
     n = len(model.cfg.flow_levels)
     feats = enc_out[:n]
     depths = enc_out[n:]
     return {
-        "completion": (rgb, sparse),
+        "completion": (rgb, inv),
         "encoder": (rgb, dense) if dense is not None else (rgb,),
         "flowpose": (*feats, *feats, *depths),
     }
@@ -155,9 +157,10 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         "depth_input": cfg.depth_input,
         "input": {
             "width": w, "height": h,
-            "rgb": "float32 RGB in [0, 1], NCHW; ImageNet mean/std normalisation happens inside the graphs",
+            "rgb_norm": "float32 NCHW, (rgb / 255 - rgb_mean) / rgb_std of the RGB crop (FramePreprocessor.rgb_input)",
             "rgb_mean": list(cfg.rgb_mean), "rgb_std": list(cfg.rgb_std),
-            "depth": "float32 metres, NCHW, 0 = no LiDAR return",
+            "invdepth": f"float32 NCHW, min_depth / depth with min_depth {cfg.min_depth} m, 0 = no LiDAR return "
+                        "(FramePreprocessor.invdepth_input); dense_invdepth is the same quantity",
             "camera_crop": "bottom-centre 1216x352 crop of image_2 (smaller images: largest bottom-centre crop "
                            "of the input aspect), resized to width x height; d3lvo_deploy.projection.network_view",
         },

@@ -105,23 +105,26 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
         raise D3LVOInputError(seq_dir, "parity needs at least 2 frames")
     h, w = seq.image(0).shape[:2]
     cfg = model.cfg
-    pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
+    pre = FramePreprocessor.for_model(seq.calib, w, h, ort_model.config, ort_model.depth_input)
     rep = ParityReport(frames=n, data=str(seq_dir))
     diff = lambda stage, name: rep.stages.setdefault(stage, {}).setdefault(name, Diff())  # noqa: E731
 
     prev_t = prev_o = None
     chain_t, chain_o = [], []
     for i in range(n):
-        rgb = pre.rgb_nchw(seq.image(i))
-        depth = pre.depth(seq.scan(i) if cfg.uses_depth else None)[None, None].copy()
-        t_rgb, t_depth = torch.from_numpy(rgb), torch.from_numpy(depth)
-        # stage: completion
+        rgb = pre.rgb_input(seq.image(i))
+        depth = pre.invdepth_input(seq.scan(i) if cfg.uses_depth else None)
+        t_rgb = torch.from_numpy(rgb)
+        t_depth = None if depth is None else torch.from_numpy(depth)
+        # stage: completion (inverse depth in and out, as deployed)
         if "completion" in ort_model.sessions:
-            dense_t = model.complete(t_rgb, t_depth)
-            diff("completion", "dense_depth").update(dense_t.numpy(), ort_model.complete(rgb, depth))
+            dense_t = model.complete_inverse(t_rgb, t_depth)
             dense_o = ort_model.complete(rgb, depth)
+            diff("completion", "dense_invdepth").update(dense_t.numpy(), dense_o)
+            # and in metres, as a user looks at it (relative tolerance above 1 m)
+            diff("completion", "dense_depth_m").update(cfg.min_depth / dense_t.numpy(), ort_model.dense_depth_m(dense_o))
         else:
-            dense_t, dense_o = (t_depth, depth) if cfg.uses_depth else (None, None)
+            dense_t, dense_o = t_depth, depth
         # stage: encoder (same inputs), then each side's own chain
         enc_names = ort_model.output_names("encoder")
         enc_t_list = _encoder_outputs(model, t_rgb, dense_t)

@@ -31,16 +31,15 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
     for d in seq_dirs:
         seq = KittiSequence.open(d)
         h, w = seq.image(0).shape[:2]
-        pre = FramePreprocessor.create(seq.calib, w, h, model.width, model.height, model.depth_input,
-                                       model.config["max_depth"])
+        pre = FramePreprocessor.for_model(seq.calib, w, h, model.config, model.depth_input)
         prev = None
         for i in range(min(len(seq), max_frames // len(seq_dirs) + 1)):
-            rgb = pre.rgb_nchw(seq.image(i))
-            depth = pre.depth(seq.scan(i) if model.depth_input != "none" else None)[None, None].copy()
+            rgb = pre.rgb_input(seq.image(i))
+            inv = pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)
             if "completion" in model.sessions:
-                feeds["completion"].append({"rgb": rgb, "sparse_depth": depth})
-                depth = model.complete(rgb, depth)
-            enc_in = {"rgb": rgb} | ({"depth": depth} if model.depth_input != "none" else {})
+                feeds["completion"].append({"rgb_norm": rgb, "sparse_invdepth": inv})
+                inv = model.complete(rgb, inv)
+            enc_in = {"rgb_norm": rgb} | ({"invdepth": inv} if inv is not None else {})
             feeds["encoder"].append(enc_in)
             enc = model.run("encoder", enc_in)
             if prev is not None:

@@ -1,7 +1,10 @@
 """The three deployment stages as modules with flat, named tensor inputs and outputs.
 
 Splitting at these points lets the runtime complete and encode each frame exactly once and
-reuse frame t's encoder outputs as frame t-1 of the next pair.
+reuse frame t's encoder outputs as frame t-1 of the next pair. The stages exchange what the
+network computes with: ImageNet-normalised RGB (`rgb_norm`) and inverse depth (min_depth / d,
+0 = no return), made by the runtime's preprocessing in the same pass that crops the image and
+projects the scan (d3lvo_deploy.frames.FramePreprocessor.rgb_input / invdepth_input).
 """
 
 from __future__ import annotations
@@ -31,30 +34,30 @@ def flowpose_output_names(model: D3LVO) -> list[str]:
 
 
 class CompletionStage(nn.Module):
-    """rgb (B,3,H,W) in [0,1], sparse_depth (B,1,H,W) metres -> dense_depth (B,1,H,W) metres."""
+    """rgb_norm (B,3,H,W), sparse_invdepth (B,1,H,W) -> dense_invdepth (B,1,H,W) in [min/max depth, 1]."""
 
-    input_names = ["rgb", "sparse_depth"]
-    output_names = ["dense_depth"]
+    input_names = ["rgb_norm", "sparse_invdepth"]
+    output_names = ["dense_invdepth"]
 
     def __init__(self, model: D3LVO):
         super().__init__()
         self.model = model
 
-    def forward(self, rgb, sparse_depth):
-        return self.model.complete(rgb, sparse_depth)
+    def forward(self, rgb_norm, sparse_invdepth):
+        return self.model.complete_inverse(rgb_norm, sparse_invdepth)
 
 
 class EncoderStage(nn.Module):
-    """rgb (+ depth) -> the pyramid levels the flow uses, and depth at those levels."""
+    """rgb_norm (+ invdepth) -> the pyramid levels the flow uses, and inverse depth at those levels."""
 
     def __init__(self, model: D3LVO):
         super().__init__()
         self.model = model
-        self.input_names = ["rgb", "depth"] if model.cfg.uses_depth else ["rgb"]
+        self.input_names = ["rgb_norm", "invdepth"] if model.cfg.uses_depth else ["rgb_norm"]
         self.output_names = encoder_output_names(model)
 
-    def forward(self, rgb, depth=None):
-        feats, depths = self.model.encode(rgb, depth)
+    def forward(self, rgb_norm, invdepth=None):
+        feats, depths = self.model.encode_inverse(rgb_norm, invdepth)
         lv = self.model.cfg.flow_levels
         out = [feats[lvl] for lvl in lv]
         if self.model.cfg.uses_depth:

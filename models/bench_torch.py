@@ -23,18 +23,20 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
         torch.set_num_threads(threads)
     model = D3LVO(cfg).eval()
     h, w = seq.image(0).shape[:2]
-    pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
+    pre = FramePreprocessor.for_model(seq.calib, w, h, cfg.to_dict(), cfg.depth_input)
     raw = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
     times = StageTimes()
     prev = None
     for k in range(warmup + runs):
         image, scan = raw[k % len(raw)]
-        rgb = torch.from_numpy(pre.rgb_nchw(image))
-        depth = torch.from_numpy(pre.depth(scan if cfg.uses_depth else None)[None, None])
+        rgb = torch.from_numpy(pre.rgb_input(image))
+        inv = pre.invdepth_input(scan if cfg.uses_depth else None)
+        inv = None if inv is None else torch.from_numpy(inv)
         ms: dict[str, float] = {}
         box: dict = {}
-        ms["completion"] = timed(lambda: box.__setitem__("d", model.complete(rgb, depth) if cfg.uses_depth else None))
-        ms["encoder"] = timed(lambda: box.__setitem__("e", model.encode(rgb, box["d"])))
+        # the deployed forms (normalised RGB, inverse depth), as the ONNX stages get them
+        ms["completion"] = timed(lambda: box.__setitem__("d", model.complete_inverse(rgb, inv) if inv is not None else None))
+        ms["encoder"] = timed(lambda: box.__setitem__("e", model.encode_inverse(rgb, box["d"])))
         cur = box["e"]
         ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1])) if prev is not None else 0.0
         prev = cur

@@ -58,8 +58,14 @@ class DepthCompletion(nn.Module):
 
     def forward(self, rgb: torch.Tensor, sparse: torch.Tensor) -> torch.Tensor:
         """rgb: normalised (B,3,H,W); sparse: metres (B,1,H,W), 0 = no return. Returns metres."""
-        inv_s = inverse_depth(sparse, self.min_depth)
-        valid = (sparse > 0).to(rgb.dtype)
+        inv = self.forward_inverse(rgb, inverse_depth(sparse, self.min_depth))
+        return (self.min_depth / inv).clamp(max=self.max_depth)
+
+    def forward_inverse(self, rgb: torch.Tensor, inv_s: torch.Tensor) -> torch.Tensor:
+        """The same in inverse depth (min_depth / d, 0 = no return), what the encoder consumes:
+        the deployed graphs take and return this form, so no full-resolution conversion to metres
+        and back runs between the stages. Output in [min_depth / max_depth, 1]."""
+        valid = (inv_s > 0).to(rgb.dtype)
         cd_logit, cd_conf, cd_feats = self.colour(torch.cat([rgb, inv_s, valid], 1))
         # max-pooling inverse depth keeps the nearest LiDAR return of each cell
         half_inv, half_valid = F.max_pool2d(inv_s, 2), F.max_pool2d(valid, 2)
@@ -70,4 +76,4 @@ class DepthCompletion(nn.Module):
         quarter = [F.avg_pool2d(rgb, 4), F.max_pool2d(inv_s, 4), F.max_pool2d(valid, 4)]
         residual = self.refine(torch.cat(quarter + [torch.sigmoid(fused)], 1))
         inv = torch.sigmoid(resize_like(fused + residual, rgb))
-        return (self.min_depth / inv.clamp(min=self.min_depth / self.max_depth)).clamp(max=self.max_depth)
+        return inv.clamp(min=self.min_depth / self.max_depth)

@@ -2,6 +2,9 @@
 
 `complete` (RGB + sparse -> dense depth), `encode` (one frame -> pyramid; run once per frame and
 cached), `flow_pose` (two pyramids -> flows, per-level poses, weights, final relative pose).
+Training calls them with RGB in [0,1] and depth in metres; the exported graphs use the
+`*_inverse` forms, whose inputs (normalised RGB, inverse depth) the runtime's preprocessing makes
+in the same pass that crops the image and projects the scan.
 The relative pose is T(t-1 -> t) of the image_2 camera: frame t's pose in frame t-1's coordinates.
 """
 
@@ -49,10 +52,21 @@ class D3LVO(nn.Module):
             return depth
         return self.completion(self.normalise(rgb), depth)
 
+    def complete_inverse(self, rgb_norm: torch.Tensor, inv: torch.Tensor) -> torch.Tensor:
+        """The deployed form: normalised RGB and inverse depth (min_depth / d) in, inverse depth out.
+        Equal to inverse_depth(complete(rgb, depth)) up to float rounding."""
+        if self.completion is None:
+            return inv
+        return self.completion.forward_inverse(rgb_norm, inv)
+
     # -- stage 2 -------------------------------------------------------------------------------
     def encode(self, rgb: torch.Tensor, depth: torch.Tensor | None):
         inv = inverse_depth(depth, self.cfg.min_depth) if self.cfg.uses_depth else None
         return self.encoder(self.normalise(rgb), inv)
+
+    def encode_inverse(self, rgb_norm: torch.Tensor, inv: torch.Tensor | None):
+        """The deployed form of `encode`: normalised RGB and inverse depth (None in rgb mode)."""
+        return self.encoder(rgb_norm, inv if self.cfg.uses_depth else None)
 
     # -- stage 3 -------------------------------------------------------------------------------
     def flow_pose(self, feats1, feats2, depths1) -> dict[str, torch.Tensor | list[torch.Tensor]]:

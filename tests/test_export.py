@@ -108,6 +108,20 @@ def test_tampered_and_mismatched(exported, tmp_path):
     other, _ = _ckpt(tmp_path, name="other.pt", mode="rgb")
     with pytest.raises(D3LVOInputError, match="another model config"):
         run_parity(other, out, frames=2)
+    old = tmp_path / "old"  # a folder from before the inverse-depth stage interface
+    shutil.copytree(out, old)
+    m = json.loads((old / "manifest.json").read_text())
+    (old / "manifest.json").write_text(json.dumps({**m, "version": 1}))
+    with pytest.raises(D3LVOInputError, match="manifest version 1.*re-export"):
+        StageModel(old)
+
+
+def test_dense_depth_in_metres_by_hand(exported):
+    _, out, _ = exported
+    sm = StageModel(out)
+    min_d = sm.config["min_depth"]
+    inv = np.array([[1.0, 0.0, 0.25, min_d / 120.0]], np.float32)
+    np.testing.assert_allclose(sm.dense_depth_m(inv), [[min_d, 0.0, 4 * min_d, 120.0]], rtol=1e-6)
 
 
 def test_cli_export_errors(tmp_path):

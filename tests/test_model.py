@@ -9,7 +9,7 @@ from models.config import D3LVOConfig
 from models.correlation import correlation_slices, correlation_stacked, correlation_tiled, cost_volume, l2_normalise
 from models.d3lvo import D3LVO
 from models.flow import upsample_flow, warp
-from models.layers import adaptive_avg_pool
+from models.layers import adaptive_avg_pool, inverse_depth
 from models.loss import PoseLoss
 from models.pose import pose_to_matrix
 
@@ -73,6 +73,22 @@ def _loop_correlation(f1, f2, s):
                         out[:, k, y, x] = (f1[:, :, y, x] * f2[:, :, y + dy, x + dx]).sum(1)
                     k += 1
     return out
+
+
+def test_deployed_inverse_forms_equal_the_metric_forms():
+    """complete_inverse/encode_inverse (what is exported) compute what complete/encode (training) do."""
+    cfg = D3LVOConfig(height=64, width=128)
+    model = D3LVO(cfg).eval()
+    rgb, _, depth, _ = _inputs(cfg)
+    with torch.no_grad():
+        dense_m = model.complete(rgb, depth)
+        inv = model.complete_inverse(model.normalise(rgb), inverse_depth(depth, cfg.min_depth))
+        torch.testing.assert_close(inverse_depth(dense_m, cfg.min_depth), inv, rtol=1e-5, atol=1e-7)
+        f_m, d_m = model.encode(rgb, dense_m)
+        f_i, d_i = model.encode_inverse(model.normalise(rgb), inv)
+    for a, b in zip(f_m + d_m, f_i + d_i):
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("impl", [correlation_slices, correlation_stacked, correlation_tiled,
