@@ -56,6 +56,8 @@ def bench_command(
     torch_compare: bool = typer.Option(True, "--torch/--no-torch", help="Also time torch eager on the same stages."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
     profile: Path | None = typer.Option(None, "--profile", help="Write onnxruntime profiles here and list the top ops."),
+    precision: str = typer.Option("fp32", "--precision", help="With --ckpt or --height/--width: export at fp32 | fp16 | "
+                                  "int8 first (INT8 calibrated as `d3lvo export` does). Torch stays FP32."),
 ) -> None:
     """Median/p90/min latency per stage, frames/s, peak RSS, and the ORT speed-up over torch eager."""
     from d3lvo_deploy.bench import BENCH_STAGES, bench_onnx, peak_rss_mb
@@ -69,7 +71,14 @@ def bench_command(
         raise D3LVOInputError(None, "give --height and --width together")
     if height is not None and onnx is not None:
         raise D3LVOInputError(onnx, "an exported folder has a fixed size; use --ckpt (or neither) with --height/--width")
+    if precision not in ("fp32", "fp16", "int8"):
+        raise D3LVOInputError(None, f"--precision must be fp32, fp16 or int8, not {precision!r}")
+    if precision != "fp32" and onnx is not None:
+        raise D3LVOInputError(onnx, "an exported folder has a fixed precision (see its manifest); use --ckpt or "
+                                    "--height/--width with --precision")
     default_network = ckpt is None and onnx is None and height is not None
+    if precision != "fp32" and ckpt is None and not default_network:
+        raise D3LVOInputError(None, "--precision needs --ckpt or --height/--width (the bundled model is fp32)")
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
         if default_network:
@@ -80,6 +89,15 @@ def bench_command(
             onnx = tmp / "onnx"
             with console.status("exporting the checkpoint"):
                 export_checkpoint(ckpt, ExportConfig(out=onnx, height=height, width=width))
+            if precision != "fp32":
+                from export.quantize import quantize_folder
+
+                from .export_cmd import default_calibration
+
+                with console.status(f"converting to {precision}"):
+                    calib = default_calibration(tmp) if precision == "int8" else []
+                    quantize_folder(onnx, tmp / f"onnx_{precision}", precision, calib)
+                onnx = tmp / f"onnx_{precision}"
         if onnx is None:
             from d3lvo_deploy.bundled import bundled_model_dir
 

@@ -11,7 +11,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from .common import console, friendly_errors
 
 
-def _default_calibration(tmp: Path) -> list[Path]:
+def default_calibration(tmp: Path) -> list[Path]:
     """Real frames when ../shared/data is present, plus a synthetic sequence: both looks the model meets."""
     from d3lvo_deploy.synth.generator import SynthConfig, generate
     from export.parity import find_real_frames
@@ -51,7 +51,7 @@ def export_command(
 
             seqs: list[Path] = []
             if precision == "int8":
-                seqs = list(calib_seq) or _default_calibration(Path(tmpd))
+                seqs = list(calib_seq) or default_calibration(Path(tmpd))
             with console.status(f"converting to {precision}"):
                 m = quantize_folder(fp32_dir, out, precision, seqs)
     size = sum((out / s["file"]).stat().st_size for s in m["stages"].values()) / 1e6

@@ -102,3 +102,21 @@ def test_conv_bench_table_totals(capsys):
     calls = sum(int(r[4]) for r in rows)  # label is 4 tokens: "3->16 3x3/2 at 64x32"
     assert total[2] == str(calls)
     assert abs(sum(float(r[6]) for r in rows) - float(total[4])) < 0.05 * len(rows)
+
+
+def test_cli_bench_precision(small_synth):
+    """--precision exports the default network at that precision first; the JSON says which."""
+    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "fp16", "--seq-dir",
+                            str(small_synth), "--runs", "1", "--threads", "1", "--no-torch", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["precision"] == "fp16"
+
+
+def test_cli_bench_precision_errors(small_model):
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--precision", "int8"])
+    assert r.exit_code == 1 and "fixed precision" in r.output
+    r = runner.invoke(app, ["bench", "--precision", "int8"])
+    assert r.exit_code == 1 and "needs --ckpt or --height/--width" in r.output
+    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "int4"])
+    assert r.exit_code == 1 and "fp32, fp16 or int8" in r.output
