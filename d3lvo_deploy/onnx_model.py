@@ -2,8 +2,9 @@
 
 Arrays in and out are numpy float32 NCHW: normalised RGB and inverse depth, as
 d3lvo_deploy.frames.FramePreprocessor makes them (`dense_depth_m` converts to metres). `encode`
-returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1's encoder outputs (`feat_lK`, `invdepth_lK`) and frame t's
-(`feat_lK`) onto the flow+pose graph's inputs (`feat1_lK`, `feat2_lK`, `invdepth1_lK`).
+returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1's encoder outputs
+(`feat_lK`, `invdepth_lK`) and frame t's (`feat_lK`) onto the flow+pose graph's inputs (`feat1_lK`,
+`feat2_lK`, `invdepth1_lK`).
 """
 
 from __future__ import annotations
