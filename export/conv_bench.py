@@ -1,13 +1,13 @@
-"""Where is onnxruntime faster than torch eager? Every convolution of the network, alone, in both.
+"""Are onnxruntime's convolutions faster than torch eager's? Every conv of the network, alone, in both.
 (`python -m export.conv_bench`)
 
 Runs the three stages once in torch to record each Conv2d's shape (input size, channels, kernel,
 stride), then times every distinct shape as a single layer in torch eager and in onnxruntime
-(same threads, the runtime's session options). The ratio per shape shows which layers give
-onnxruntime its edge (blocked layouts at high resolution) and which run at parity (8-channel and
-low-resolution layers, where torch's oneDNN kernels are as fast). A single-layer ORT session also
-pays the layout reorder of its input and output, which inside a whole graph happens only at
-boundaries, so the ORT column is an upper bound. The README quotes this script's output.
+(same threads, the runtime's session options). It separates the kernels from the graph: what
+onnxruntime gains over torch on a whole stage beyond this table comes from fusion, layouts kept
+between layers and memory planning, not from faster convolution kernels. A single-layer ORT
+session also pays the layout reorder of its input and output, which inside a whole graph happens
+only at boundaries, so its column is an upper bound. The README quotes this script's output.
 """
 
 from __future__ import annotations
