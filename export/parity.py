@@ -113,18 +113,18 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     chain_t, chain_o = [], []
     for i in range(n):
         rgb = pre.rgb_input(seq.image(i))
-        depth = pre.invdepth_input(seq.scan(i) if cfg.uses_depth else None)
+        inv = pre.invdepth_input(seq.scan(i) if cfg.uses_depth else None)
         t_rgb = torch.from_numpy(rgb)
-        t_depth = None if depth is None else torch.from_numpy(depth)
+        t_inv = None if inv is None else torch.from_numpy(inv)
         # stage: completion (inverse depth in and out, as deployed)
         if "completion" in ort_model.sessions:
-            dense_t = model.complete_inverse(t_rgb, t_depth)
-            dense_o = ort_model.complete(rgb, depth)
+            dense_t = model.complete_inverse(t_rgb, t_inv)
+            dense_o = ort_model.complete(rgb, inv)
             diff("completion", "dense_invdepth").update(dense_t.numpy(), dense_o)
             # and in metres, as a user looks at it (relative tolerance above 1 m)
             diff("completion", "dense_depth_m").update(cfg.min_depth / dense_t.numpy(), ort_model.dense_depth_m(dense_o))
         else:
-            dense_t, dense_o = t_depth, depth
+            dense_t, dense_o = t_inv, inv
         # stage: encoder (same inputs), then each side's own chain
         enc_names = ort_model.output_names("encoder")
         enc_t_list = _encoder_outputs(model, t_rgb, dense_t)
