@@ -45,7 +45,8 @@ def run_command(
     workers: int = typer.Option(2, "--workers", help="With --sequences: parallel workers."),
     address: str | None = typer.Option(None, "--address", help="With --engine ray: cluster address (default: local)."),
     chunk: int = typer.Option(1000, "--chunk", help="With --sequences: frames per task (long sequences are split)."),
-    overlap: int = typer.Option(1, "--overlap", help="With --sequences: frames shared by consecutive chunks."),
+    overlap: int = typer.Option(2, "--overlap", help="With --sequences: frames shared by consecutive chunks (the "
+                                "stitch anchors at the last one, so each chunk's cold-started first pair is dropped)."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
     fmt: str = typer.Option("kitti", "--format", help="kitti | tum."),
     start: int = typer.Option(0, "--start", help="First frame."),
@@ -57,13 +58,19 @@ def run_command(
     threads: int = typer.Option(0, "--threads", help="onnxruntime intra-op threads (0: all cores)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by times.txt, like a live 10 Hz sensor."),
+    method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
+                               "photometric LiDAR-visual tracker the network is measured against)."),
 ) -> None:
     """Estimate the trajectory of a sequence with the ONNX stages (no torch needed)."""
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.sequence import KittiSequence
 
+    if method not in ("d3lvo", "direct"):
+        raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
     if sequences is not None:
+        if method != "d3lvo":
+            raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")
         return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap)
     if out_path is None:
         raise D3LVOInputError(None, "--out FILE is required (or --sequences with --out-dir)")
@@ -78,7 +85,13 @@ def run_command(
     if gt is not None and kitti_root is not None:
         seq = KittiSequence.open(seq.root, gt=gt)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization)
-    model_dir = resolve_model_dir(onnx)
+    odometry = None
+    if method == "direct":
+        from d3lvo_deploy.direct import DirectOdometry
+
+        odometry, model_dir = DirectOdometry(seq.calib), None
+    else:
+        model_dir = resolve_model_dir(onnx)
     rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, realtime=realtime)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
         warnings.simplefilter("always")
@@ -87,7 +100,7 @@ def run_command(
         def tick(done: int, total: int, ms: float) -> None:
             bar.update(task, completed=done, total=total, rate=f"{1000.0 / max(ms, 1e-6):.1f} frames/s")
 
-        summary = run_sequence(seq, model_dir, rc, sc, progress=tick)
+        summary = run_sequence(seq, model_dir, rc, sc, progress=tick, odometry=odometry)
     seen = set()
     for w in caught:
         msg = str(w.message)
@@ -98,7 +111,7 @@ def run_command(
         console.print(f"resumed after {summary.resumed_from} poses already in {out_path}", highlight=False)
     out.print(latency_table(summary.stats()))
     out.print(f"{summary.frames} poses in {out_path} ({fmt}, cam0, first pose identity)", highlight=False)
-    _score(seq, out_path, fmt, start, end, plot)
+    _score(seq, out_path, fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
 
 
 def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap) -> None:
@@ -134,7 +147,7 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
         out.print(report_table(evaluate_files(pairs)))
 
 
-def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None) -> None:
+def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None, label: str) -> None:
     from d3lvo_deploy.evaluation import EvalReport, evaluate
     from d3lvo_deploy.geometry import relative
     from d3lvo_deploy.plot import plot_trajectories
@@ -157,6 +170,6 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
         console.print(f"[yellow]note[/] {note}", highlight=False)
     out.print(report_table(EvalReport([res], "none")))
     if plot is not None:
-        plot_trajectories(plot, {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
+        plot_trajectories(plot, {"GT": res.gt_poses, label: res.est_poses},
                           title=f"{seq.root.name}: ATE {res.ate:.2f} m")
         console.print(f"plot written to {plot}", highlight=False)

@@ -13,6 +13,15 @@ from .common import console, friendly_errors
 from .progress import frame_progress
 
 
+def baseline_line(m: dict) -> str:
+    """Pair errors next to their baselines (models.train.pair_metrics): what 'learned' rests on."""
+    parts = [f"flow EPE {k[len('flow_epe_'):]} {m[k]:.3f} (zero flow {m[k + '_zero']:.3f})"
+             for k in sorted(m) if k.startswith("flow_epe_") and not k.endswith("_zero")]
+    parts.append(f"rotation {m['rot_err_deg']:.4f} deg (no rotation {m['rot_err_deg_zero']:.4f})")
+    parts.append(f"translation {m['trans_err_m']:.4f} m (no motion {m['trans_err_m_zero']:.4f})")
+    return ", ".join(parts)
+
+
 @friendly_errors
 def train_command(
     data: list[Path] = typer.Option(..., "--data", help="Training sequence folder (repeat for several)."),
@@ -23,6 +32,8 @@ def train_command(
     mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
     completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
     preset: str = typer.Option("default", "--preset", help="default (1216x352) | small (the same network at 608x176, CPU)."),
+    pose_head: str = typer.Option("auto", "--pose-head", help="gauss_newton (geometric, the default where there is "
+                                  "depth) | mlp (the paper's regression) | auto."),
     batch_size: int = typer.Option(4, "--batch-size"),
     lr: float = typer.Option(3e-4, "--lr"),
     val_every: int = typer.Option(500, "--val-every"),
@@ -38,7 +49,8 @@ def train_command(
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
     try:
-        cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion)
+        cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion,
+                                                                         pose_head=pose_head)
     except ValueError as e:
         raise D3LVOInputError(None, str(e)) from None
     for d in [*data, *val]:
@@ -58,6 +70,7 @@ def train_command(
                     t = "n/a" if m["t_rel"] is None else f"{m['t_rel']:.2f} %"
                     console.print(f"step {step} val {name}: t_rel {t}, ATE {m['ate']:.3f} m, "
                                   f"RPE {m['rpe_t']:.3f} m / {m['rpe_r']:.3f} deg", highlight=False)
+                    console.print("  " + baseline_line(m), highlight=False)
                 if rec.get("best"):
                     console.print(f"  best so far: saved {best_path(out)}", highlight=False)
 

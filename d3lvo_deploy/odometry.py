@@ -16,8 +16,8 @@ import numpy as np
 from .calib import Calib, parse_calib
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
-from .geometry import change_frame
-from .onnx_model import SessionConfig, StageModel
+from .geometry import change_frame, relative
+from .onnx_model import SessionConfig, StageModel, camera_inputs
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 
@@ -65,11 +65,18 @@ class Odometry:
         self.last_timing = FrameTiming()
         self.reset()
 
+    @property
+    def needs_scan(self) -> bool:
+        return self.model.depth_input != "none"
+
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
         self._prev: dict[str, np.ndarray] | None = None
         self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
         self.relative = np.eye(4)
+        # the last pair's motion of the image_2 camera: where the Gauss-Newton head starts the next
+        # pair (constant velocity; identity on the first pair, a cold start)
+        self.motion2 = np.eye(4)
         self.frames = 0
 
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
@@ -106,19 +113,32 @@ class Odometry:
         enc = self.encode(image, points)
         t0 = time.perf_counter()
         if self._prev is not None:
-            out = self.model.flow_pose(self._prev, enc)
+            camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None
+            out = self.model.flow_pose(self._prev, enc, camera)
             A2 = out["matrix"][0].astype(np.float64)
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
             self.relative = change_frame(A2, self.calib.T_cam0_cam2)
-            self.pose = self.pose @ self.relative
+            before, self.pose = self.pose, self.pose @ self.relative
+            # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
+            # that an interrupted and resumed run starts every pair where an uninterrupted one does
+            self.motion2 = self._motion_between(before, self.pose)
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
         self.frames += 1
         return self.pose.copy()
 
-    def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray) -> None:
-        """Resume: take frame t-1 and its known pose without estimating anything."""
+    def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
+              previous_pose: np.ndarray | None = None) -> None:
+        """Resume: take frame t-1 and its known pose without estimating anything; with the pose
+        before it, the next pair starts from that motion, as an uninterrupted run would."""
         self._prev = self.encode(image, points)
         self.pose = np.array(pose, dtype=np.float64)
+        if previous_pose is not None:
+            self.relative = relative(previous_pose, self.pose)
+            self.motion2 = self._motion_between(previous_pose, self.pose)
         self.frames += 1
+
+    def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:
+        """The image_2 motion between two cam0 poses: the Gauss-Newton head's next start."""
+        return change_frame(relative(before, after), self.calib.T_cam2_cam0)

@@ -51,14 +51,27 @@ def resolve_providers(name: str) -> list[str]:
     return [wanted, "CPUExecutionProvider"] if wanted != "CPUExecutionProvider" else [wanted]
 
 
-def flowpose_feeds(input_names: list[str], prev: dict, cur: dict) -> dict:
-    """Map two frames' encoder outputs (`feat_lK`, `invdepth_lK`) onto the flow+pose inputs
-    (`feat1_lK`, `feat2_lK`, `invdepth1_lK`): suffix 1 is frame t-1, suffix 2 frame t."""
+def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:
+    """Map two frames' encoder outputs (`feat_lK`, `invdepth_lK`, `grey_lK`) onto the flow+pose
+    inputs (`feat1_lK`, `feat2_lK`, ...): suffix 1 is frame t-1, suffix 2 frame t. The
+    Gauss-Newton head's `intrinsics` and `init_pose` come from `camera`."""
     feeds = {}
     for name in input_names:
+        if name in ("intrinsics", "init_pose"):
+            if camera is None or name not in camera:
+                raise ValueError(f"the flow+pose graph needs {name!r} (a Gauss-Newton pose head)")
+            feeds[name] = np.ascontiguousarray(camera[name], dtype=np.float32)
+            continue
         frame, key = name.split("_", 1)
         feeds[name] = (prev if frame.endswith("1") else cur)[f"{frame[:-1]}_{key}"]
     return feeds
+
+
+def camera_inputs(K: np.ndarray, init: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The Gauss-Newton head's extra inputs from a 3x3 camera matrix at the network input and the
+    starting relative pose of the image_2 camera (identity when None)."""
+    return {"intrinsics": np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]], np.float32),
+            "init_pose": np.asarray(np.eye(4) if init is None else init, np.float32).reshape(1, 4, 4)}
 
 
 class StageModel:
@@ -127,9 +140,16 @@ class StageModel:
         min_d = np.float32(self.config["min_depth"])
         return np.divide(min_d, invdepth, out=np.zeros_like(invdepth), where=invdepth > 0)
 
-    def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    @property
+    def geometric(self) -> bool:
+        """Whether the flow+pose graph is the Gauss-Newton head (takes intrinsics and init_pose)."""
+        return any(i.name == "init_pose" for i in self.sessions["flowpose"].get_inputs())
+
+    def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray],
+                  camera: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """`camera`: `camera_inputs(K, init)`, for the Gauss-Newton head."""
         names = [i.name for i in self.sessions["flowpose"].get_inputs()]
-        return self.run("flowpose", flowpose_feeds(names, prev, cur))
+        return self.run("flowpose", flowpose_feeds(names, prev, cur, camera))
 
     def end_profiling(self) -> list[str]:
         return [s.end_profiling() for s in self.sessions.values()]

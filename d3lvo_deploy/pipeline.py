@@ -75,9 +75,11 @@ def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
     return traj.poses
 
 
-def run_sequence(seq: KittiSequence, model_dir: str | Path, rc: RunConfig, sc: SessionConfig = SessionConfig(),
-                 progress: Callable[[int, int, float], None] | None = None, model: StageModel | None = None) -> RunSummary:
-    """Estimate poses for frames [start, end) and write them to rc.out; returns timings."""
+def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
+                 progress: Callable[[int, int, float], None] | None = None, model: StageModel | None = None,
+                 odometry=None) -> RunSummary:
+    """Estimate poses for frames [start, end) and write them to rc.out; returns timings.
+    `odometry`: another tracker with Odometry's interface (the direct reference tracker)."""
     end = len(seq) if rc.end is None else rc.end
     if not 0 <= rc.start < end <= len(seq):
         raise D3LVOInputError(seq.root, f"frame range {rc.start}..{end} is outside 0..{len(seq)}")
@@ -89,7 +91,7 @@ def run_sequence(seq: KittiSequence, model_dir: str | Path, rc: RunConfig, sc: S
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
-    odo = Odometry(model_dir, seq.calib, sc, model=model)
+    odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
     summary = RunSummary(frames=n, out=out, resumed_from=len(done))
     summary.latencies_ms = {k: [] for k in (*STAGES, "total")}
@@ -103,7 +105,8 @@ def run_sequence(seq: KittiSequence, model_dir: str | Path, rc: RunConfig, sc: S
     with fh:
         if len(done):
             k = rc.start + len(done) - 1
-            odo.prime(seq.image(k), seq.scan(k) if odo.model.depth_input != "none" else None, done[-1])
+            odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
+                      done[-2] if len(done) >= 2 else None)
         t_wall0 = time.perf_counter()
         for j in range(len(done), n):
             i = rc.start + j
@@ -114,7 +117,7 @@ def run_sequence(seq: KittiSequence, model_dir: str | Path, rc: RunConfig, sc: S
             t0 = time.perf_counter()
             try:
                 image = seq.image(i)
-                points = seq.scan(i) if odo.model.depth_input != "none" else None
+                points = seq.scan(i) if odo.needs_scan else None
             except D3LVOInputError as e:
                 raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
                                               f"{out}, fix the frame and rerun with --resume") from None

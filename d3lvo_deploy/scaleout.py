@@ -1,11 +1,15 @@
 """Many sequences, many workers: sequences split into overlapping chunks, run in parallel, stitched.
 
-D3LVO's relative pose for (t-1, t) depends on those two frames only, so a chunk started at frame s
-reproduces the sequential run's motions exactly; stitching maps each chunk onto the previous one
-through the pose of their first shared frame, and the rest of the overlap is a check (reported as
-`overlap_residual_m`). Engines: `sequential`, `local` (a process pool on this machine) and `ray`
-(Ray actors; a cluster via `address`). Each worker holds one set of ONNX sessions for its life.
-Each sequence's trajectory is written as soon as its last chunk is back.
+A chunk is a run of its own: its first pair starts the Gauss-Newton pose head from rest, where
+the uninterrupted run starts it from the previous pair's motion (constant velocity). So chunks
+overlap by `overlap` frames (default 2) and each is mapped onto the previous one through the
+pose of their *last* shared frame: the cold-started pair lies inside the overlap and is dropped,
+and the rest of the overlap is a check (reported as `overlap_residual_m`: what a cold start
+moved the pose by). With the paper's MLP head (no start pose) the stitched trajectory equals the
+sequential run exactly. Engines: `sequential`, `local` (a process pool on this machine) and
+`ray` (Ray actors; a cluster via `address`); they run the same chunks, so their trajectories
+are identical. Each worker holds one set of ONNX sessions for its life. Each sequence's
+trajectory is written as soon as its last chunk is back.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .errors import D3LVOInputError
+from .geometry import se3_inv
 from .odometry import Odometry
 from .onnx_model import SessionConfig, StageModel
 from .pipeline import format_kitti
@@ -54,7 +59,8 @@ def stitch(parts: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, float]:
     traj = {start0 + k: p for k, p in enumerate(first)}
     residual = 0.0
     for start, poses in parts[1:]:
-        anchor = traj[start]  # pose of the shared first frame in the sequence frame; poses[0] is identity
+        last = max(start + k for k in range(len(poses)) if start + k in traj)  # last shared frame
+        anchor = traj[last] @ se3_inv(poses[last - start])
         for k, p in enumerate(poses):
             g = anchor @ p
             if start + k in traj:
@@ -149,7 +155,7 @@ def _ray(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.nd
 
 
 def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, engine: str = "local", workers: int = 2,
-             chunk: int = 1000, overlap: int = 1, address: str | None = None, sc: SessionConfig | None = None,
+             chunk: int = 1000, overlap: int = 2, address: str | None = None, sc: SessionConfig | None = None,
              on_chunk: Callable[[Chunk], None] | None = None,
              on_sequence: Callable[[str, Path, float], None] | None = None) -> dict[str, float]:
     """Run every sequence; returns {sequence: overlap residual (m)}. Trajectories go to out_dir/NAME.txt."""

@@ -64,8 +64,8 @@ def conv_layers(cfg: D3LVOConfig) -> Counter:
     sparse = torch.rand(1, 1, cfg.height, cfg.width) * 50
     with torch.no_grad():
         dense = model.complete(rgb, sparse) if cfg.uses_depth else None
-        feats, depths = model.encode(rgb, dense)
-        model.flow_pose(feats, feats, depths)
+        feats, depths, greys = model.encode(rgb, dense)
+        model.flow_pose(feats, feats, depths, greys, greys)
     for h in handles:
         h.remove()
     return seen

@@ -24,6 +24,7 @@ from d3lvo_deploy.manifest import sha256_file as sha256
 from models.checkpoint import build_model, load_checkpoint
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
+from models.pose_gn import nominal_intrinsics
 
 from .stages import CompletionStage, EncoderStage, FlowPoseStage
 
@@ -74,13 +75,14 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
         dense = model.complete_inverse(rgb, inv) if model.cfg.uses_depth else None
         enc = EncoderStage(model)
         enc_out = enc(rgb, dense) if dense is not None else enc(rgb)
-    n = len(model.cfg.flow_levels)
-    feats = enc_out[:n]
-    depths = enc_out[n:]
+    enc_by = dict(zip(enc.output_names, enc_out))
+    fp = FlowPoseStage(model)
+    camera = {"intrinsics": nominal_intrinsics(model.cfg), "init_pose": torch.eye(4)[None]}
+    flowpose = [camera[n] if n in camera else enc_by[n.replace("1_", "_").replace("2_", "_")] for n in fp.input_names]
     return {
         "completion": (rgb, inv),
         "encoder": (rgb, dense) if dense is not None else (rgb,),
-        "flowpose": (*feats, *feats, *depths),
+        "flowpose": tuple(flowpose),
     }
 
 
@@ -91,6 +93,25 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
         warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below
         torch.onnx.export(module, args, str(path), input_names=module.input_names, output_names=module.output_names,
                           opset_version=opset, dynamo=False, do_constant_folding=True, dynamic_axes=dynamic)
+    _declare_output_shapes(path, module, args, dynamic_batch)
+
+
+def _declare_output_shapes(path: Path, module, args, dynamic_batch: bool) -> None:
+    """The exporter's shape inference gives up behind the Gauss-Newton solver's elementwise
+    Cholesky (outputs named `Concatpose_dim_0`...); the shapes are static, so write the traced
+    ones into the graph (batch symbolic with --dynamic-batch) for the manifest and its checks."""
+    with torch.no_grad():
+        outs = module(*args)
+    outs = outs if isinstance(outs, tuple) else (outs,)
+    m = onnx.load(str(path))
+    for vi, t in zip(m.graph.output, outs):
+        dims = vi.type.tensor_type.shape.dim
+        for k, size in enumerate(t.shape):
+            if k == 0 and dynamic_batch:
+                dims[k].dim_param = "batch"
+            else:
+                dims[k].dim_value = int(size)
+    onnx.save(m, str(path))
 
 
 def check_graph(path: Path) -> onnx.ModelProto:

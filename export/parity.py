@@ -17,7 +17,7 @@ import torch
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.geometry import relative, rotation_angle_precise
-from d3lvo_deploy.onnx_model import SessionConfig, StageModel, flowpose_feeds
+from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import D3LVOConfig
@@ -111,6 +111,9 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
 
     prev_t = prev_o = None
     chain_t, chain_o = [], []
+    # each side starts the Gauss-Newton head from its own previous motion, as the runtime does
+    motion_t = motion_o = np.eye(4)
+    geometric = ort_model.geometric
     for i in range(n):
         rgb = pre.rgb_input(seq.image(i))
         inv = pre.invdepth_input(seq.scan(i) if cfg.uses_depth else None)
@@ -134,12 +137,16 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             diff("encoder", k).update(enc_t[k], enc_same[k])
         enc_o = ort_model.encode(rgb, dense_o)
         if prev_t is not None:
-            fp_t = _flowpose_outputs(model, prev_t, enc_t)
-            fp_same = ort_model.flow_pose(prev_t, enc_t)
+            cam_t = camera_inputs(pre.K, motion_t) if geometric else None
+            cam_o = camera_inputs(pre.K, motion_o) if geometric else None
+            fp_t = _flowpose_outputs(model, prev_t, enc_t, cam_t)
+            fp_same = ort_model.flow_pose(prev_t, enc_t, cam_t)
             for k in fp_t:
                 diff("flowpose", k).update(fp_t[k], fp_same[k])
-            chain_t.append(fp_t["matrix"][0].astype(np.float64))
-            chain_o.append(ort_model.flow_pose(prev_o, enc_o)["matrix"][0].astype(np.float64))
+            motion_t = fp_t["matrix"][0].astype(np.float64)
+            motion_o = ort_model.flow_pose(prev_o, enc_o, cam_o)["matrix"][0].astype(np.float64)
+            chain_t.append(motion_t)
+            chain_o.append(motion_o)
         prev_t, prev_o = enc_t, enc_o
     E = relative(np.array(chain_t), np.array(chain_o))
     rep.chained_t_m = float(np.linalg.norm(E[:, :3, 3], axis=1).max())
@@ -156,9 +163,9 @@ def _encoder_outputs(model, rgb, dense) -> list[torch.Tensor]:
     return list(enc(rgb, dense) if dense is not None else enc(rgb))
 
 
-def _flowpose_outputs(model, prev: dict, cur: dict) -> dict[str, np.ndarray]:
+def _flowpose_outputs(model, prev: dict, cur: dict, camera: dict | None) -> dict[str, np.ndarray]:
     from .stages import FlowPoseStage
 
     fp = FlowPoseStage(model)
-    feeds = flowpose_feeds(fp.input_names, prev, cur)
+    feeds = flowpose_feeds(fp.input_names, prev, cur, camera)
     return dict(zip(fp.output_names, [x.numpy() for x in fp(*(torch.from_numpy(feeds[n]) for n in fp.input_names))]))

@@ -18,7 +18,7 @@ import onnx
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.manifest import load_manifest
-from d3lvo_deploy.onnx_model import StageModel, flowpose_feeds
+from d3lvo_deploy.onnx_model import StageModel, camera_inputs, flowpose_feeds
 from d3lvo_deploy.sequence import KittiSequence
 
 from .onnx_export import check_graph, sha256
@@ -33,6 +33,7 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
         h, w = seq.image(0).shape[:2]
         pre = FramePreprocessor.for_model(seq.calib, w, h, model.config, model.depth_input)
         prev = None
+        camera = camera_inputs(pre.K)  # identity start: calibration needs representative tensors, not poses
         for i in range(min(len(seq), max_frames // len(seq_dirs) + 1)):
             rgb = pre.rgb_input(seq.image(i))
             inv = pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)
@@ -44,7 +45,7 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
             enc = model.run("encoder", enc_in)
             if prev is not None:
                 names = [inp.name for inp in model.sessions["flowpose"].get_inputs()]
-                feeds["flowpose"].append(flowpose_feeds(names, prev, enc))
+                feeds["flowpose"].append(flowpose_feeds(names, prev, enc, camera))
             prev = enc
     return feeds
 
@@ -94,7 +95,15 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         feeds = calibration_feeds(fp32_dir, calib_seqs)
     for name, st in manifest["stages"].items():
         src, dst = fp32_dir / st["file"], out_dir / st["file"]
-        if precision == "fp16":
+        stage_precision = precision
+        if precision == "fp16" and name == "flowpose" and manifest["model_config"].get("pose_head") != "mlp" \
+                and manifest["depth_input"] != "none":
+            # the Gauss-Newton head stays FP32: its normal equations sum thousands of squared
+            # gradients (past FP16's 65504) and its Cholesky and epsilons need more than 11 bits;
+            # converted (solver nodes blocked or not) it returned non-finite poses on real frames
+            stage_precision = "fp32"
+            onnx.save(onnx.load(str(src)), str(dst))
+        elif precision == "fp16":
             from onnxruntime.transformers.float16 import convert_float_to_float16
 
             m = convert_float_to_float16(onnx.load(str(src)), keep_io_types=True)
@@ -111,10 +120,11 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         del m.metadata_props[:]
         for p in onnx.load(str(src), load_external_data=False).metadata_props:
             m.metadata_props.append(p)
-        m.metadata_props.append(onnx.StringStringEntryProto(key="d3lvo_precision", value=precision))
+        m.metadata_props.append(onnx.StringStringEntryProto(key="d3lvo_precision", value=stage_precision))
         onnx.save(m, str(dst))
         check_graph(dst)
         manifest["stages"][name]["sha256"] = sha256(dst)
+        manifest["stages"][name]["precision"] = stage_precision
     manifest["precision"] = precision
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
     return manifest

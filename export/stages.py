@@ -14,23 +14,35 @@ from torch import nn
 from models.d3lvo import D3LVO
 
 
+# inputs of the flow+pose graph that are not encoder outputs (Gauss-Newton head only): the camera
+# (fx, fy, cx, cy at the network input, (B,4)) and the starting relative pose ((B,4,4), the
+# previous pair's motion at run time)
+CAMERA_INPUTS = ("intrinsics", "init_pose")
+
+
 def encoder_output_names(model: D3LVO) -> list[str]:
-    names = [f"feat_l{lvl}" for lvl in model.cfg.flow_levels]
-    if model.cfg.uses_depth:
-        names += [f"invdepth_l{lvl}" for lvl in model.cfg.flow_levels]
+    cfg = model.cfg
+    names = [f"feat_l{lvl}" for lvl in cfg.flow_levels]
+    if cfg.uses_depth:
+        names += [f"invdepth_l{lvl}" for lvl in cfg.depth_levels]
+    names += [f"grey_l{lvl}" for lvl in cfg.gn_levels]
     return names
 
 
 def flowpose_input_names(model: D3LVO) -> list[str]:
-    lv = model.cfg.flow_levels
+    cfg = model.cfg
+    lv = cfg.flow_levels
     names = [f"feat1_l{lvl}" for lvl in lv] + [f"feat2_l{lvl}" for lvl in lv]
-    if model.cfg.uses_depth:
-        names += [f"invdepth1_l{lvl}" for lvl in lv]
-    return names
+    if cfg.uses_depth:
+        names += [f"invdepth1_l{lvl}" for lvl in cfg.depth_levels]
+    names += [f"grey1_l{lvl}" for lvl in cfg.gn_levels] + [f"grey2_l{lvl}" for lvl in cfg.gn_levels]
+    return names + (list(CAMERA_INPUTS) if cfg.geometric else [])
 
 
 def flowpose_output_names(model: D3LVO) -> list[str]:
-    return [f"flow_l{lvl}" for lvl in model.cfg.flow_levels] + ["level_poses", "level_weights", "pose", "matrix"]
+    cfg = model.cfg
+    return ([f"flow_l{lvl}" for lvl in cfg.flow_levels] + [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
+            + ["level_poses", "level_weights", "pose", "matrix"])
 
 
 class CompletionStage(nn.Module):
@@ -57,11 +69,12 @@ class EncoderStage(nn.Module):
         self.output_names = encoder_output_names(model)
 
     def forward(self, rgb_norm, invdepth=None):
-        feats, depths = self.model.encode_inverse(rgb_norm, invdepth)
-        lv = self.model.cfg.flow_levels
-        out = [feats[lvl] for lvl in lv]
-        if self.model.cfg.uses_depth:
-            out += [depths[lvl] for lvl in lv]
+        cfg = self.model.cfg
+        feats, depths, greys = self.model.encode_inverse(rgb_norm, invdepth)
+        out = [feats[lvl] for lvl in cfg.flow_levels]
+        if cfg.uses_depth:
+            out += [depths[lvl] for lvl in cfg.depth_levels]
+        out += [greys[lvl] for lvl in cfg.gn_levels]
         return tuple(out)
 
 
@@ -75,12 +88,8 @@ class FlowPoseStage(nn.Module):
         self.output_names = flowpose_output_names(model)
 
     def forward(self, *tensors):
-        lv = self.model.cfg.flow_levels
-        n = len(lv)
-        f1, f2, d1 = [None] * 4, [None] * 4, [None] * 4
-        for i, lvl in enumerate(lv):
-            f1[lvl], f2[lvl] = tensors[i], tensors[n + i]
-            if self.model.cfg.uses_depth:
-                d1[lvl] = tensors[2 * n + i]
-        out = self.model.flow_pose(f1, f2, d1)
-        return (*out["flows"], out["poses"], out["weights"], out["pose"], out["matrix"])
+        byname = dict(zip(self.input_names, tensors))
+        levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
+        out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
+                                   levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"))
+        return (*out["flows"], *out.get("confidence", []), out["poses"], out["weights"], out["pose"], out["matrix"])

@@ -25,6 +25,7 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
     h, w = seq.image(0).shape[:2]
     pre = FramePreprocessor.for_model(seq.calib, w, h, cfg.to_dict(), cfg.depth_input)
     raw = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
+    K = torch.tensor([[pre.K[0, 0], pre.K[1, 1], pre.K[0, 2], pre.K[1, 2]]], dtype=torch.float32)
     times = StageTimes()
     prev = None
     for k in range(warmup + runs):
@@ -38,7 +39,7 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
         ms["completion"] = timed(lambda: box.__setitem__("d", model.complete_inverse(rgb, inv) if inv is not None else None))
         ms["encoder"] = timed(lambda: box.__setitem__("e", model.encode_inverse(rgb, box["d"])))
         cur = box["e"]
-        ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1])) if prev is not None else 0.0
+        ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K)) if prev is not None else 0.0
         prev = cur
         if k >= warmup:
             times.add(ms)

@@ -75,5 +75,7 @@ class DepthCompletion(nn.Module):
         fused = dd_logit + w_cd * (cd_logit - dd_logit)  # h/4
         quarter = [F.avg_pool2d(rgb, 4), F.max_pool2d(inv_s, 4), F.max_pool2d(valid, 4)]
         residual = self.refine(torch.cat(quarter + [torch.sigmoid(fused)], 1))
-        inv = torch.sigmoid(resize_like(fused + residual, rgb))
-        return inv.clamp(min=self.min_depth / self.max_depth)
+        inv = torch.sigmoid(resize_like(fused + residual, rgb)).clamp(min=self.min_depth / self.max_depth)
+        # LiDAR returns are kept as measured (the completion fills the holes between them): the
+        # Gauss-Newton pose head back-projects these pixels, and a 1 cm return beats any prediction
+        return torch.where(inv_s > 0, inv_s, inv)

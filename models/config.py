@@ -46,6 +46,17 @@ class D3LVOConfig:
     depth_gate_width: int = 32  # G(D): expand to 32 channels, then 1x1 conv + activation (paper)
     context: bool = True
     context_width: int = 16
+    # P (eq. 8-9): "gauss_newton" (default) solves dT by a weighted Gauss-Newton step on SE(3):
+    # frame t-1's pixels, back-projected with the level's dense depth, are moved by T and compared
+    # with frame t's features (photometric + learned channels, PixLoc / DVL-SLAM style) under
+    # per-pixel confidences the network predicts; "mlp" is the paper's regression head; "auto"
+    # takes gauss_newton where the mode has depth and mlp for rgb (nothing to back-project).
+    pose_head: str = "auto"
+    gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
+    gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
+    gn_features: int = 8  # learned feature channels beside the grey image in the residual
+    gn_huber: float = 0.1  # Huber threshold on the residual (normalised-RGB units)
+    gn_damping: float = 1e-3  # Levenberg-Marquardt lambda (relative to diag(H))
     pose_hidden: tuple[int, int, int] = (256, 128, 64)  # P: the paper's MLP
     pose_width: int = 32  # the two strided convs before the pose MLP
     pose_pool: tuple[int, int] = (2, 6)
@@ -64,6 +75,12 @@ class D3LVOConfig:
             raise ValueError("pyramid levels are 0..3")
         if len(self.completion_widths) != 3:
             raise ValueError("completion_widths needs 3 values (h/2, h/4, h/8)")
+        if self.pose_head not in ("auto", "gauss_newton", "mlp"):
+            raise ValueError(f"pose_head must be auto, gauss_newton or mlp, not {self.pose_head!r}")
+        if self.pose_head == "gauss_newton" and not self.uses_depth:
+            raise ValueError("pose_head gauss_newton needs depth (back-projection); use pose_head=mlp with mode rgb")
+        if any(not 0 <= lvl <= 3 for lvl in self.gn_extra_levels):
+            raise ValueError("gn_extra_levels are pyramid levels 0..3")
         if self.correlation not in ("tiled", "slices", "stacked"):
             raise ValueError(f"correlation must be tiled, slices or stacked, not {self.correlation!r}")
 
@@ -74,6 +91,24 @@ class D3LVOConfig:
     @property
     def learned_completion(self) -> bool:
         return self.mode == "rgb_completion" and self.completion == "learned"
+
+    @property
+    def geometric(self) -> bool:
+        return self.pose_head == "gauss_newton" or (self.pose_head == "auto" and self.uses_depth)
+
+    @property
+    def gn_levels(self) -> tuple[int, ...]:
+        """Levels with a Gauss-Newton step, coarse to fine (none for the mlp head): the flow levels,
+        then those of `gn_extra_levels` finer than the finest flow level."""
+        if not self.geometric:
+            return ()
+        extra = sorted((lvl for lvl in set(self.gn_extra_levels) if lvl < min(self.flow_levels)), reverse=True)
+        return (*self.flow_levels, *extra)
+
+    @property
+    def depth_levels(self) -> tuple[int, ...]:
+        """Levels at which the encoder returns frame depth."""
+        return tuple(sorted(set(self.flow_levels) | set(self.gn_levels), reverse=True))
 
     @property
     def depth_input(self) -> str:
@@ -93,6 +128,8 @@ class D3LVOConfig:
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown config keys {sorted(unknown)}")
+        d = dict(d)
+        d.setdefault("pose_head", "mlp")  # configs written before the Gauss-Newton head had the MLP
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
     @classmethod
@@ -102,6 +139,6 @@ class D3LVOConfig:
         then 152x44 cells, the same as the default's h/8 at 1216x352. At h/8 of 608x176 a typical
         frame-to-frame rotation of 0.5 deg moves the image by ~0.4 cells, and a first training
         run with flow at h/16 + h/8 here did not learn rotation at all."""
-        base = dict(height=176, width=608, flow_levels=(3, 2, 1))
+        base = dict(height=176, width=608, flow_levels=(3, 2, 1), gn_extra_levels=(0,))
         base.update(kw)
         return cls(**base)

@@ -19,6 +19,7 @@ from .encoder import PyramidEncoder
 from .flow import ContextNet, FlowLevel, upsample_flow
 from .layers import inverse_depth
 from .pose import IDENTITY, PoseLevel, normalise_pose, pose_to_matrix
+from .pose_gn import GaussNewtonPose, nominal_intrinsics
 
 
 class D3LVO(nn.Module):
@@ -34,7 +35,9 @@ class D3LVO(nn.Module):
         for i, lvl in enumerate(cfg.flow_levels):
             ch = cfg.feature_widths[lvl]
             self.flow[str(lvl)] = FlowLevel(cfg, ch, coarsest=i == 0)
-            self.pose[str(lvl)] = PoseLevel(cfg, cfg.flow_hidden[1] + 2 + (1 if cfg.uses_depth else 0))
+            if not cfg.geometric:
+                self.pose[str(lvl)] = PoseLevel(cfg, cfg.flow_hidden[1] + 2 + (1 if cfg.uses_depth else 0))
+        self.gn_pose = GaussNewtonPose(cfg) if cfg.geometric else None
         finest = cfg.flow_levels[-1]
         self.context = ContextNet(cfg.flow_hidden[1] + 2, cfg.context_width) if cfg.context else None
         self.register_buffer("rgb_mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1), persistent=False)
@@ -61,19 +64,29 @@ class D3LVO(nn.Module):
 
     # -- stage 2 -------------------------------------------------------------------------------
     def encode(self, rgb: torch.Tensor, depth: torch.Tensor | None):
+        """-> (features, depths, grey images) per level; see PyramidEncoder."""
         inv = inverse_depth(depth, self.cfg.min_depth) if self.cfg.uses_depth else None
-        return self.encoder(self.normalise(rgb), inv)
+        return self.encode_inverse(self.normalise(rgb), inv)
 
     def encode_inverse(self, rgb_norm: torch.Tensor, inv: torch.Tensor | None):
         """The deployed form of `encode`: normalised RGB and inverse depth (None in rgb mode)."""
-        return self.encoder(rgb_norm, inv if self.cfg.uses_depth else None)
+        feats, depths = self.encoder(rgb_norm, inv if self.cfg.uses_depth else None)
+        return feats, depths, self.encoder.grey_pyramid(rgb_norm)
 
     # -- stage 3 -------------------------------------------------------------------------------
-    def flow_pose(self, feats1, feats2, depths1) -> dict[str, torch.Tensor | list[torch.Tensor]]:
+    def flow_pose(self, feats1, feats2, depths1, grey1=None, grey2=None, K: torch.Tensor | None = None,
+                  init: torch.Tensor | None = None) -> dict[str, torch.Tensor | list[torch.Tensor]]:
+        """Two frames' encoder outputs -> flows, per-level and final relative pose.
+
+        The Gauss-Newton head also takes K (B,4) fx, fy, cx, cy at the network input (default: a
+        nominal KITTI-like camera) and init (B,4,4), the starting relative pose (identity by
+        default; the runtime passes the previous frame's motion, a constant-velocity start)."""
         ref = feats1[self.cfg.flow_levels[0]]
-        pose = torch.tensor(IDENTITY, dtype=ref.dtype, device=ref.device).expand(ref.shape[0], 7)
+        b = ref.shape[0]
+        pose = torch.tensor(IDENTITY, dtype=ref.dtype, device=ref.device).expand(b, 7)
         flow = None
         flows, poses, confs = [], [], []
+        hidden_by, flow_by = {}, {}
         for lvl in self.cfg.flow_levels:
             f1, f2 = feats1[lvl], feats2[lvl]
             d1 = depths1[lvl] if self.cfg.uses_depth else None
@@ -81,27 +94,37 @@ class D3LVO(nn.Module):
             flow, hidden = self.flow[str(lvl)](f1, f2, flow_up, d1)
             if self.context is not None and lvl == self._finest:
                 flow = self.context(hidden, flow)
-            x = torch.cat([hidden, flow / 10.0] + ([d1] if d1 is not None else []), 1)
-            pose, conf = self.pose[str(lvl)](x, pose)
             flows.append(flow)
-            poses.append(pose)
-            confs.append(conf)
-        levels = torch.stack(poses, 1)  # (B, L, 7)
-        weights = torch.softmax(torch.cat(confs, 1), dim=1)  # (B, L)
+            hidden_by[lvl], flow_by[lvl] = hidden, flow
+            if self.gn_pose is None:
+                x = torch.cat([hidden, flow / 10.0] + ([d1] if d1 is not None else []), 1)
+                pose, conf = self.pose[str(lvl)](x, pose)
+                poses.append(pose)
+                confs.append(conf)
+        out: dict = {"flows": flows}
+        if self.gn_pose is None:
+            levels = torch.stack(poses, 1)  # (B, L, 7)
+            weights = torch.softmax(torch.cat(confs, 1), dim=1)  # (B, L)
+        else:
+            K = nominal_intrinsics(self.cfg, b, ref.dtype).to(ref.device) if K is None else K
+            init = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(b, 4, 4) if init is None else init
+            levels, weights, maps = self.gn_pose(hidden_by, flow_by, feats1, feats2, grey1, grey2, depths1, K, init)
+            out["confidence"] = [maps[lvl] for lvl in self.cfg.gn_levels]
         final = normalise_pose((weights.unsqueeze(-1) * levels).sum(1))
-        return {"flows": flows, "poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)}
+        out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
+        return out
 
-    def forward(self, rgb1, rgb2, depth1=None, depth2=None) -> dict:
-        """rgb: (B,3,H,W) in [0,1]; depth: metres (B,1,H,W): sparse LiDAR, or IP-Basic dense."""
+    def forward(self, rgb1, rgb2, depth1=None, depth2=None, K=None, init=None) -> dict:
+        """rgb: (B,3,H,W) in [0,1]; depth: metres (B,1,H,W): sparse LiDAR, or IP-Basic dense;
+        K, init: see `flow_pose`."""
         out: dict = {}
         if self.cfg.uses_depth:
             dense = self.complete(torch.cat([rgb1, rgb2]), torch.cat([depth1, depth2]))
             out["dense1"], out["dense2"] = dense.chunk(2)
         else:
             dense = None
-        feats, depths = self.encode(torch.cat([rgb1, rgb2]), dense)
-        f1 = [None if f is None else f.chunk(2)[0] for f in feats]
-        f2 = [None if f is None else f.chunk(2)[1] for f in feats]
-        d1 = [d.chunk(2)[0] for d in depths]
-        out.update(self.flow_pose(f1, f2, d1))
+        feats, depths, greys = self.encode(torch.cat([rgb1, rgb2]), dense)
+        first = lambda xs: [None if x is None else x.chunk(2)[0] for x in xs]  # noqa: E731
+        second = lambda xs: [None if x is None else x.chunk(2)[1] for x in xs]  # noqa: E731
+        out.update(self.flow_pose(first(feats), second(feats), first(depths), first(greys), second(greys), K, init))
         return out

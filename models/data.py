@@ -30,6 +30,10 @@ class AugmentConfig:
     flip: float = 0.5  # probability
     brightness: float = 0.2  # factor in [1 - b, 1 + b], shared by both frames
     rotation_deg: float = 2.0  # uniform in [-r, r], shared by both frames
+    # the Gauss-Newton head starts from the previous pair's motion at run time (constant
+    # velocity); training starts it from the GT previous motion, and from identity with this
+    # probability, so that it also learns to converge from a cold start (a sequence's first pair)
+    cold_start: float = 0.2
 
 
 def rigid_flow(depth: np.ndarray, K: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -122,25 +126,30 @@ class PairDataset(Dataset):
         L = self.loaders[k]
         imgs = [L.rgb(i - 1), L.rgb(i)]
         deps = [L.depth_input(i - 1), L.depth_input(i)]
-        gts = [L.gt_depth(i - 1), L.gt_depth(i)]
-        # depth that defines the flow target: the dense z-buffer where the data has one, else LiDAR
-        gts.append(gts[0] if np.any(gts[0] > 0) else sparse_depth(L.seq.scan(i - 1), L.pre.P, self.cfg.width,
-                                                                   self.cfg.height))
+        # depth targets (completion L1, flow target): the dense z-buffer where the data has one
+        # (synthetic depth_2/), else the LiDAR returns themselves (real KITTI)
+        gts = [L.gt_depth(j) for j in (i - 1, i)]
+        gts = [g if np.any(g > 0) else sparse_depth(L.seq.scan(j), L.pre.P, self.cfg.width, self.cfg.height)
+               for g, j in zip(gts, (i - 1, i))]
+        gts.append(gts[0])
         A = self.relative_pose(k, i)
+        A0 = self.relative_pose(k, i - 1) if i >= 2 else np.eye(4)
+        rng = np.random.default_rng([self.seed, self.epoch, idx])
+        if self.augment is not None and rng.uniform() < self.augment.cold_start:
+            A0 = np.eye(4)
         if self.augment is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, idx])
             a = self.augment
             cx, cy = float(L.K[0, 2]), float(L.K[1, 2])
             if rng.uniform() < a.flip:
                 imgs, deps, gts = flip_images(*imgs), flip_images(*deps), flip_images(*gts)
-                A = flip_pose(A)
+                A, A0 = flip_pose(A), flip_pose(A0)
                 cx = self.cfg.width - 1 - cx  # the principal point mirrors too
             if a.rotation_deg > 0:
                 ang = float(rng.uniform(-a.rotation_deg, a.rotation_deg))
                 centre = (cx, cy)
                 imgs, deps2 = rotate_images(imgs, deps + gts, ang, centre)
                 deps, gts = deps2[:2], deps2[2:]
-                A = roll_pose(A, ang)
+                A, A0 = roll_pose(A, ang), roll_pose(A0, ang)
             if a.brightness > 0:
                 f = float(rng.uniform(1 - a.brightness, 1 + a.brightness))
                 imgs = [np.clip(im * f, 0.0, 1.0) for im in imgs]
@@ -154,6 +163,7 @@ class PairDataset(Dataset):
             "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),
             "depth1": t(deps[0])[None], "depth2": t(deps[1])[None],
             "gt_depth1": t(gts[0])[None], "gt_depth2": t(gts[1])[None],
-            "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)),
+            "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)), "init": t(A0.astype(np.float32)),
+            "K": t(np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)),
             "flow": t(flow), "flow_valid": t(valid),
         }

@@ -4,8 +4,15 @@ The 4-channel RGB-D input is split into an RGB stream and a depth stream, becaus
 acts on RGB features and eq. 2 (SA) on depth features. Each level halves the resolution with a
 strided conv and a residual block (h/2, h/4, h/8, h/16). The two streams are fused per level by
 a 1x1 conv, plus cross attention (eq. 3) at `xa_levels`. Alongside the features, the encoder
-returns frame depth at each level (as min_depth/d) for G(D) and the pose head; it runs once per
-frame, so the runtime can cache it for the next pair.
+returns frame depth at each level (as min_depth/d) for G(D) and the pose head, and, for the
+Gauss-Newton pose head, a grey image per level; it runs once per frame, so the runtime can cache
+it for the next pair.
+
+Level l (stride s = 2^(l+1)) cell (i, j) is centred on input pixel (s*i, s*j): a stride-2 conv with
+padding 1 centres output i on input 2i. Depth per level is therefore the input depth at those
+pixels (strided slicing, not pooling: an average of inverse depths across an object boundary is a
+surface that does not exist, and back-projecting it puts points in mid-air), and the grey image
+is smoothed by a box of s+1 pixels centred there.
 """
 
 from __future__ import annotations
@@ -58,7 +65,7 @@ class PyramidEncoder(nn.Module):
             used = lvl in self.cfg.flow_levels
             if self.cfg.uses_depth:
                 xd = self.sa[lvl](self.dep[lvl](xd))
-                inv_depth = F.avg_pool2d(inv_depth, 2)
+                inv_depth = inv_depth[..., ::2, ::2]
                 depths.append(inv_depth)
                 f = self.fuse[lvl](torch.cat([xr, xd], 1)) if used else None
                 if used and str(lvl) in self.xa:
@@ -67,3 +74,14 @@ class PyramidEncoder(nn.Module):
                 f = self.fuse[lvl](xr) if used else None
             feats.append(f)
         return feats, depths
+
+    def grey_pyramid(self, rgb: torch.Tensor) -> list[torch.Tensor | None]:
+        """Per level: the mean of the normalised RGB channels, box-smoothed and sampled at the
+        level's cell centres (None at levels without a Gauss-Newton step)."""
+        grey = rgb.mean(1, keepdim=True)
+        out: list[torch.Tensor | None] = []
+        for lvl in range(4):
+            s = 2 ** (lvl + 1)
+            used = lvl in self.cfg.gn_levels
+            out.append(F.avg_pool2d(grey, s + 1, stride=s, padding=s // 2, count_include_pad=False) if used else None)
+        return out

@@ -24,8 +24,8 @@ class LossConfig:
     balance_init: str = "data"  # data | config (use s_t_init, s_q_init)
     s_t_init: float = 0.0
     s_q_init: float = -3.0
-    completion_weight: float = 0.05  # L1 (m) on depth GT where the data has it (synthetic depth_2)
-    flow_weight: float = 0.1  # EPE (px at each level) against the rigid flow of GT depth + GT pose
+    completion_weight: float = 0.2  # L1 (m) on depth GT where the data has it (synthetic depth_2)
+    flow_weight: float = 0.5  # EPE (cells of each level) against the rigid flow of GT depth + GT pose
 
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:

@@ -21,7 +21,10 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
     loader = FrameLoader(seq, model.cfg)
     end = len(seq) if end is None else end
     dev = next(model.parameters()).device
+    K = torch.tensor([[loader.K[0, 0], loader.K[1, 1], loader.K[0, 2], loader.K[1, 2]]], dtype=torch.float32,
+                     device=dev)
     prev = None
+    motion = torch.eye(4, device=dev)[None]  # image_2 motion of the previous pair: the GN head's start
     rel = []
     for i in range(start, end):
         rgb = torch.from_numpy(loader.rgb(i)).permute(2, 0, 1)[None].to(dev)
@@ -29,8 +32,9 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
         dense = model.complete(rgb, depth) if model.cfg.uses_depth else None
         cur = model.encode(rgb, dense)
         if prev is not None:
-            out = model.flow_pose(prev[0], cur[0], prev[1])
-            A2 = out["matrix"][0].double().cpu().numpy()
+            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion)
+            motion = out["matrix"]
+            A2 = motion[0].double().cpu().numpy()
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
         prev = cur
     return accumulate(np.array(rel).reshape(-1, 4, 4))

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn.functional as F
@@ -73,13 +74,15 @@ def _device(name: str, rank: int) -> torch.device:
 
 
 def validate(model: D3LVO, seqs: list[str]) -> dict:
-    """t_rel/r_rel (when the path is long enough), ATE and RPE per validation sequence."""
+    """t_rel/r_rel (when the path is long enough), ATE and RPE per validation sequence, and the
+    pair errors of `pair_metrics` next to their baselines."""
     out = {}
     for s in seqs:
         est = predict_sequence(model, s)
         gt = KittiSequence.open(s).ground_truth
         res = evaluate(gt, Trajectory.from_poses(est), name=Path(s).name)
         out[Path(s).name] = {k: v for k, v in res.to_dict().items() if k in ("t_rel", "r_rel", "ate", "rpe_t", "rpe_r")}
+        out[Path(s).name].update(pair_metrics(model, [s]))
     return out
 
 
@@ -106,21 +109,61 @@ def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     return (pred - gt).abs()[mask].mean()
 
 
-def flow_loss(flows: list[torch.Tensor], batch: dict, device) -> torch.Tensor:
-    """Mean end-point error of each flow level against the rigid-flow target, pooled to the level
-    (valid pixels only), averaged over levels. Supervising flow directly lets the pose head learn
-    from meaningful motion features in few steps."""
-    gt = batch["flow"].to(device)
-    valid = batch["flow_valid"].to(device)
-    losses = []
+def level_flow_target(flow: torch.Tensor, valid: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
+    """Full-resolution rigid flow (px) -> a level's grid (cells): the mean over each cell's pixels
+    that have a target. A cell counts when any of its pixels has one, so sparse LiDAR targets
+    (real KITTI: ~5 % of pixels) still supervise every cell they touch."""
+    s = flow.shape[-1] // shape[-1]
+    v = F.avg_pool2d(valid, s)
+    return F.avg_pool2d(flow * valid, s) / v.clamp(min=1e-6) / s, v > 0
+
+
+def flow_errors(flows: list[torch.Tensor], batch: dict, device) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per flow level: (mean EPE of the prediction, mean EPE of predicting zero flow), in cells."""
+    gt, valid = batch["flow"].to(device), batch["flow_valid"].to(device)
+    out = []
     for f in flows:
-        s = gt.shape[-1] // f.shape[-1]
-        v = F.avg_pool2d(valid, s)
-        g = F.avg_pool2d(gt * valid, s) / v.clamp(min=1e-6) / s
-        m = v > 0.5
+        g, m = level_flow_target(gt, valid, f.shape[-2:])
         if m.any():
-            losses.append(((f - g).norm(dim=1, keepdim=True))[m].mean())
-    return torch.stack(losses).mean() if losses else torch.zeros((), device=device)
+            out.append((((f - g).norm(dim=1, keepdim=True))[m].mean(), g.norm(dim=1, keepdim=True)[m].mean()))
+    return out
+
+
+def flow_loss(flows: list[torch.Tensor], batch: dict, device) -> torch.Tensor:
+    """Mean end-point error of each flow level against the rigid-flow target, averaged over levels."""
+    errs = flow_errors(flows, batch, device)
+    return torch.stack([e for e, _ in errs]).mean() if errs else torch.zeros((), device=device)
+
+
+def _rotation_deg(R: torch.Tensor) -> torch.Tensor:
+    c = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(c))
+
+
+@torch.no_grad()
+def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
+    """Frame-pair errors next to their baselines, on evenly spaced pairs of each sequence
+    (no augmentation, the GN head started from the GT previous motion as in training):
+    flow EPE per level against predicting zero flow, rotation error (deg) against predicting no
+    rotation, translation error (m) against predicting no motion."""
+    model.eval()
+    data = PairDataset(seqs, model.cfg, augment=None)
+    idx = np.linspace(0, len(data) - 1, min(pairs, len(data))).round().astype(int)
+    dev = next(model.parameters()).device
+    acc: dict[str, list[float]] = {}
+    for i in idx:
+        b = {k: v[None] for k, v in data[int(i)].items()}
+        out = model(b["rgb1"].to(dev), b["rgb2"].to(dev), b["depth1"].to(dev), b["depth2"].to(dev),
+                    b["K"].to(dev), b["init"].to(dev))
+        for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
+            acc.setdefault(f"flow_epe_l{lvl}", []).append(float(e))
+            acc.setdefault(f"flow_epe_l{lvl}_zero", []).append(float(z))
+        P, G = out["matrix"][0].cpu().double(), b["matrix"][0].double()
+        acc.setdefault("rot_err_deg", []).append(float(_rotation_deg(P[:3, :3].T @ G[:3, :3])))
+        acc.setdefault("rot_err_deg_zero", []).append(float(_rotation_deg(G[:3, :3])))
+        acc.setdefault("trans_err_m", []).append(float((P[:3, 3] - G[:3, 3]).norm()))
+        acc.setdefault("trans_err_m_zero", []).append(float(G[:3, 3].norm()))
+    return {k: float(np.mean(v)) for k, v in acc.items()}
 
 
 def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
@@ -184,7 +227,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
             if step >= tc.steps:
                 break
             ddp_model.train()
-            out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device))
+            out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
+                            b["K"].to(device), b["init"].to(device))
             pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
             comp = completion_loss(out, b, device)
             fl = flow_loss(out["flows"], b, device)

@@ -83,7 +83,8 @@ def test_dynamic_batch(tmp_path):
     depth = np.zeros((3, 1, 64, 224), np.float32)
     enc = sm.encode(rgb, sm.complete(rgb, depth))
     assert enc["feat_l1"].shape[0] == 3
-    assert sm.flow_pose(enc, enc)["matrix"].shape == (3, 4, 4)
+    camera = {"intrinsics": np.tile([[130.0, 130.0, 111.5, 31.5]], (3, 1)), "init_pose": np.tile(np.eye(4), (3, 1, 1))}
+    assert sm.flow_pose(enc, enc, camera)["matrix"].shape == (3, 4, 4)
 
 
 @pytest.mark.slow
@@ -164,7 +165,9 @@ def test_reduced_precision_exports(small_model, small_synth, tmp_path, precision
         model = onnx.load(str(out / st["file"]))
         assert non_standard_nodes(model) == []
         ops |= {n.op_type for n in model.graph.node}
-        assert {p.key: p.value for p in model.metadata_props}["d3lvo_precision"] == precision
+        # fp16 keeps the Gauss-Newton flow+pose stage in fp32 (its solver overflows fp16)
+        expect = "fp32" if precision == "fp16" and st["file"] == "flowpose.onnx" else precision
+        assert {p.key: p.value for p in model.metadata_props}["d3lvo_precision"] == expect == st["precision"]
     if precision == "int8":
         assert {"QuantizeLinear", "DequantizeLinear"} <= ops
     else:

