@@ -10,8 +10,15 @@ from rich.console import Console
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-console = Console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
-out = Console()
+def _console(stderr: bool) -> Console:
+    """Piped or redirected, rich would cut tables to 80 columns (`100.5…` for an ATE): wide enough
+    there that every cell stays whole."""
+    c = Console(stderr=stderr)
+    return c if c.is_terminal else Console(stderr=stderr, width=200)
+
+
+console = _console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
+out = _console(stderr=False)
 
 F = TypeVar("F", bound=Callable)
 

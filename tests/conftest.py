@@ -28,6 +28,31 @@ def small_synth(tmp_path_factory) -> Path:
     return out
 
 
+def render_turning_drive(out: Path, frames: int, phase: float, seed: int) -> Path:
+    """A synthetic sequence whose camera turns left and right (yaw +-2 deg per frame) at a varying
+    speed (0.5-1.1 m per frame): motion that differs between pairs, so no constant predicts it."""
+    import numpy as np
+
+    from d3lvo_deploy.geometry import accumulate, axis_angle_to_rot, make_se3
+    from d3lvo_deploy.poses import write_poses
+    from d3lvo_deploy.synth.generator import SynthConfig, generate
+
+    k = np.arange(frames - 1)
+    yaw = np.radians(2.0 * np.sin(0.7 * k + phase))
+    forward = 0.8 + 0.3 * np.cos(0.5 * k + phase)
+    rel = np.array([make_se3(axis_angle_to_rot([0.0, y, 0.0]), [0.0, 0.0, f]) for y, f in zip(yaw, forward)])
+    gt = out.parent / f"{out.name}_motion.txt"
+    write_poses(gt, accumulate(rel))
+    return generate(out, SynthConfig(frames=frames, seed=seed, width=620, height=188, motion_from=str(gt)))
+
+
+@pytest.fixture(scope="session")
+def turning_drives(tmp_path_factory) -> tuple[Path, Path]:
+    """(training, held-out) turning drives: other phases of the motion, other worlds."""
+    d = tmp_path_factory.mktemp("turning")
+    return render_turning_drive(d / "train", 12, 0.0, 31), render_turning_drive(d / "heldout", 7, 1.3, 32)
+
+
 def make_checkpoint(path: Path, seed: int = 0, **cfg_kw) -> Path:
     """An untrained but deterministic small checkpoint (random BN statistics, so BN folding matters)."""
     import torch
