@@ -16,7 +16,7 @@ from .common import console, friendly_errors, out
 
 def _bench_frames(tmp: Path) -> Path:
     """Real KITTI frames when ../shared/data is present, else a synthetic full-size sequence."""
-    from export.parity import find_real_frames
+    from d3lvo_deploy.bundled import find_real_frames
 
     real = find_real_frames()
     if real is not None:
@@ -61,6 +61,7 @@ def bench_command(
 ) -> None:
     """Median/p90/min latency per stage, frames/s, peak RSS, and the ORT speed-up over torch eager."""
     from d3lvo_deploy.bench import BENCH_STAGES, bench_onnx, peak_rss_mb
+    from d3lvo_deploy.bundled import find_real_frames
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.sequence import KittiSequence
@@ -79,6 +80,14 @@ def bench_command(
     default_network = ckpt is None and onnx is None and height is not None
     if precision != "fp32" and ckpt is None and not default_network:
         raise D3LVOInputError(None, "--precision needs --ckpt or --height/--width (the bundled model is fp32)")
+    if ckpt is not None or default_network:
+        from d3lvo_deploy.extras import require
+
+        require("torch", "onnx", what="d3lvo bench with --ckpt or --height/--width (it exports first)")
+    if seq_dir is None and find_real_frames() is None:
+        from d3lvo_deploy.extras import require
+
+        require("embreex", what="d3lvo bench without --seq-dir or ../shared/data (it renders frames)")
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
         if default_network:

@@ -23,13 +23,16 @@ def demo_command(
     onnx: Path | None = typer.Option(None, "--onnx", help="Model folder (default: the bundled model)."),
 ) -> None:
     """Generate a held-out synthetic drive, run the ONNX pipeline, score it; then the real frames."""
+    from d3lvo_deploy.extras import require
+
+    require("embreex", "matplotlib", what="d3lvo demo (it renders a drive and plots it)")
     from d3lvo_deploy.evaluation import EvalReport, evaluate
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.synth.generator import SynthConfig, generate
-    from export.parity import find_real_frames
+    from d3lvo_deploy.bundled import find_real_frames
 
     from .eval_cmd import report_table
     from .run_cmd import latency_table, resolve_model_dir

@@ -10,6 +10,7 @@ from rich.table import Table
 
 from d3lvo_deploy.evaluation import ALIGN_MODES, EvalReport, evaluate_files, pair_result_files
 from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.extras import require
 from d3lvo_deploy.plot import plot_trajectories
 
 from .common import console, friendly_errors, out
@@ -44,6 +45,8 @@ def eval_command(
     """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE."""
     if align not in ALIGN_MODES:
         raise D3LVOInputError(None, f"--align must be one of {', '.join(ALIGN_MODES)}, not {align!r}")
+    if plot is not None:
+        require("matplotlib", what="--plot")
     for p, what in ((gt, "ground truth"), (est, "estimate")):
         if not p.exists():
             raise D3LVOInputError(p, f"{what} not found")
@@ -55,7 +58,7 @@ def eval_command(
         for s in report.sequences:
             target = plot if len(report.sequences) == 1 else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
             try:
-                plot_trajectories(target, {"GT": s.gt_poses, f"estimate ({report.align})": s.est_poses},
+                plot_trajectories(target, {"GT": s.gt_poses, f"estimate (align: {report.align})": s.est_poses},
                                   title=f"{s.name}: t_rel {_fmt(s.t_rel)} %, ATE {s.ate:.2f} m")
             except OSError as e:
                 raise D3LVOInputError(target, f"cannot write the plot ({e.strerror})") from None

@@ -14,7 +14,7 @@ from .common import console, friendly_errors
 def default_calibration(tmp: Path) -> list[Path]:
     """Real frames when ../shared/data is present, plus a synthetic sequence: both looks the model meets."""
     from d3lvo_deploy.synth.generator import SynthConfig, generate
-    from export.parity import find_real_frames
+    from d3lvo_deploy.bundled import find_real_frames
 
     seqs = [generate(tmp / "calib_synth", SynthConfig(frames=8, seed=4242, width=620, height=188))]
     real = find_real_frames()
@@ -36,6 +36,9 @@ def export_command(
     """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed."""
     import tempfile
 
+    from d3lvo_deploy.extras import require
+
+    require("torch", "onnx", what="d3lvo export")
     from export.onnx_export import ExportConfig, export_checkpoint
 
     if precision not in ("fp32", "fp16", "int8"):

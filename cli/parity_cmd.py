@@ -21,6 +21,9 @@ def parity_command(
     as_json: bool = typer.Option(False, "--json", help="Print the numbers and a pass flag as JSON."),
 ) -> None:
     """Compare torch and onnxruntime per stage output and along the chained pipeline; exit 1 on failure."""
+    from d3lvo_deploy.extras import require
+
+    require("torch", "onnx", what="d3lvo parity")
     from export.parity import POSE_R_TOL, POSE_T_TOL, STAGE_TOL, run_parity
 
     rep = run_parity(ckpt, onnx, seq_dir, frames)

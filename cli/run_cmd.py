@@ -68,6 +68,10 @@ def run_command(
 
     if method not in ("d3lvo", "direct"):
         raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
+    if plot is not None:
+        from d3lvo_deploy.extras import require
+
+        require("matplotlib", what="--plot")
     if sequences is not None:
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")

@@ -33,6 +33,9 @@ def synth_command(
     resume: bool = typer.Option(True, "--resume/--overwrite", help="Keep frames already written by an interrupted run."),
 ) -> None:
     """Render a synthetic KITTI-format sequence: image_2, velodyne, calib, times and GT poses."""
+    from d3lvo_deploy.extras import require
+
+    require("embreex", what="d3lvo synth")
     from d3lvo_deploy.synth.generator import SynthConfig, generate
 
     width, height = parse_size(size)

@@ -47,6 +47,9 @@ def train_command(
 
     The loss goes negative, and that is expected: eq. 11 adds the learnable balance terms s_t and s_q themselves (l = |dt| exp(-s_t) + s_t + |dq|^2 exp(-s_q) + s_q), and s_q settles near log(rotation error^2), about -9 for frame-to-frame motion.
     """  # noqa: E501 (typer keeps a docstring's line breaks in --help)
+    from d3lvo_deploy.extras import require
+
+    require("torch", what="d3lvo train")
     from models.config import D3LVOConfig
     from models.train import TrainConfig, best_path, train
 

@@ -9,6 +9,9 @@ import numpy as np
 
 def plot_trajectories(out: str | Path, trajectories: dict[str, np.ndarray], title: str = "") -> Path:
     """Draw each (N,4,4) trajectory in cam0's x-z plane (KITTI's bird's-eye view) and save a PNG."""
+    from .extras import require
+
+    require("matplotlib", what="a trajectory plot")
     import matplotlib
 
     matplotlib.use("Agg")

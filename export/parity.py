@@ -17,6 +17,7 @@ import torch
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.geometry import relative, rotation_angle_precise
+from d3lvo_deploy.bundled import find_real_frames
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
@@ -63,15 +64,6 @@ class ParityReport:
             "stages": {s: {o: vars(d) for o, d in outs.items()} for s, outs in self.stages.items()},
             "chained": {"translation_m": self.chained_t_m, "rotation_deg": self.chained_r_deg},
         }
-
-
-def find_real_frames() -> Path | None:
-    """The 20 real KITTI frames in ../shared/data, looked for beside the repo and the working dir."""
-    rel = Path("shared") / "data" / "kitti_raw_snippet" / "sequences" / "r0926"
-    for base in (Path(__file__).resolve().parents[2], Path.cwd().parent, Path.cwd()):
-        if (base / rel).is_dir():
-            return base / rel
-    return None
 
 
 def _torch_model(ckpt: Path, manifest: dict):

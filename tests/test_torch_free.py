@@ -37,3 +37,44 @@ def test_every_runtime_module_imports_without_torch():
     r = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert int(r.stdout.strip()) >= 10  # the walk really found the modules
+
+
+def test_runtime_cli_runs_without_the_training_extras(small_synth, tmp_path):
+    """A vehicle install (no [train], [synth], [plot]): run (network and direct tracker) and eval
+    work; commands that need an extra say which one in one line, exit 1, no traceback."""
+    script = textwrap.dedent(
+        """
+        import sys
+        BLOCKED = ("torch", "embreex", "matplotlib", "onnx")
+
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in BLOCKED:
+                    raise ImportError(f"{name} is blocked in this test")
+                return None
+
+        sys.meta_path.insert(0, Block())
+        from cli.main import main
+        sys.argv = ["d3lvo"] + sys.argv[1:]
+        main()
+        """
+    )
+
+    def d3lvo(*args):
+        return subprocess.run([sys.executable, "-c", script, *args], cwd=ROOT, capture_output=True, text=True)
+
+    seq, est = str(small_synth), str(tmp_path / "p.txt")
+    r = d3lvo("run", "--seq-dir", seq, "--out", est)
+    assert r.returncode == 0, r.stderr
+    assert len(open(est).read().splitlines()) == 6
+    r = d3lvo("run", "--seq-dir", seq, "--method", "direct", "--out", str(tmp_path / "d.txt"))
+    assert r.returncode == 0, r.stderr
+    r = d3lvo("eval", "--gt", str(small_synth / "poses.txt"), "--est", est)
+    assert r.returncode == 0 and "ATE" in r.stdout, r.stderr
+    for args, extra in ((["train", "--data", seq, "--out", str(tmp_path / "c.pt")], "train"),
+                        (["synth", "--out", str(tmp_path / "s"), "--frames", "2"], "synth"),
+                        (["eval", "--gt", str(small_synth / "poses.txt"), "--est", est, "--plot", str(tmp_path / "x.png")], "plot"),
+                        (["export", "--ckpt", "x.pt", "--out", str(tmp_path / "o")], "train")):
+        r = d3lvo(*args)
+        assert r.returncode == 1, (args, r.stderr)
+        assert f"pip install 'd3lvo-deploy[{extra}]'" in r.stderr and "Traceback" not in r.stderr, r.stderr

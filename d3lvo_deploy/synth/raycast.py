@@ -26,6 +26,9 @@ class RayCaster:
     """Embree scene over one triangle mesh; `cast` takes (N,3) origins and directions."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        from ..extras import require
+
+        require("embreex", what="the synthetic world (d3lvo synth, d3lvo demo)")
         from embreex.mesh_construction import TriangleMesh  # imported here: only the generator needs it
         from embreex.rtcore_scene import EmbreeScene
 
