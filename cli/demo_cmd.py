@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import tempfile
 import time
 from pathlib import Path
 
@@ -18,7 +20,8 @@ DEMO_SIZE = (620, 188)  # the bundled model runs at 608x176; rendering at this s
 
 @friendly_errors
 def demo_command(
-    out_dir: Path = typer.Option(Path("d3lvo-demo"), "--out", help="Folder for the sequence, poses and plots."),
+    out_dir: Path = typer.Option(Path(tempfile.gettempdir()) / "d3lvo-demo", "--out",
+                                 help="Folder for the sequence, poses and plots (default: outside the checkout)."),
     frames: int = typer.Option(DEMO_FRAMES, "--frames", help="Length of the held-out synthetic sequence."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Model folder (default: the bundled model)."),
 ) -> None:
@@ -40,19 +43,22 @@ def demo_command(
     t_start = time.perf_counter()
     model_dir = resolve_model_dir(onnx)
     seq_dir = out_dir / "synthetic_heldout"
-    console.print(f"[bold]1/3[/] rendering a held-out synthetic drive ({frames} frames, seed {DEMO_SEED}) "
-                  f"into {seq_dir}", highlight=False)
-    with frame_progress() as bar:
-        task = bar.add_task("synth", total=frames, rate="")
-        generate(seq_dir, SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1]),
-                 progress=lambda n: bar.update(task, completed=n))
+    cfg = SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1])
+    if _rendered(seq_dir, cfg):
+        console.print(f"[bold]1/3[/] reusing the held-out synthetic drive rendered earlier in {seq_dir}", highlight=False)
+    else:
+        console.print(f"[bold]1/3[/] rendering a held-out synthetic drive ({frames} frames, seed {DEMO_SEED}) "
+                      f"into {seq_dir}", highlight=False)
+        with frame_progress() as bar:
+            task = bar.add_task("synth", total=frames, rate="")
+            generate(seq_dir, cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
 
     console.print("[bold]2/3[/] D3LVO (ONNX Runtime, bundled model) on it", highlight=False)
     seq = KittiSequence.open(seq_dir)
     poses_path = out_dir / "synthetic_heldout_poses.txt"
     with frame_progress() as bar:
         task = bar.add_task("run", total=len(seq), rate="")
-        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path),
+        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True),
                                progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{1000 / max(ms, 1e-6):.1f} frames/s"))
     res = evaluate(seq.ground_truth, read_poses(poses_path), name="synthetic held-out")
     out.print(report_table(EvalReport([res], "none")))
@@ -69,7 +75,7 @@ def demo_command(
         console.print(f"[bold]3/3[/] the 20 real KITTI frames in {real}", highlight=False)
         rseq = KittiSequence.open(real)
         rpath = out_dir / "real_r0926_poses.txt"
-        run_sequence(rseq, model_dir, RunConfig(out=rpath))
+        run_sequence(rseq, model_dir, RunConfig(out=rpath, overwrite=True))
         rp = read_poses(rpath).poses
         dist = float(np.linalg.norm(np.diff(rp[:, :3, 3], axis=0), axis=1).sum())
         rplot = plot_trajectories(out_dir / "real_r0926.png", {"D3LVO (ONNX)": rp}, title="real KITTI 2011_09_26 (no GT)")
@@ -77,4 +83,19 @@ def demo_command(
                   "exists for these frames, so no accuracy is claimed; the bundled model was trained on synthetic "
                   "data only and is not meant for real KITTI accuracy.", highlight=False)
         console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)
-    console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s", highlight=False)
+    size = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
+    console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {size:.0f} MB "
+                  "(delete it when done)", highlight=False)
+
+
+def _rendered(seq_dir: Path, cfg) -> bool:
+    """Whether seq_dir already holds this exact drive, every frame written."""
+    from dataclasses import asdict
+
+    from d3lvo_deploy.synth.generator import GENERATOR_VERSION
+
+    meta = seq_dir / "synth.json"
+    if not meta.is_file():
+        return False
+    same = json.loads(meta.read_text()) == json.loads(json.dumps({"generator_version": GENERATOR_VERSION, **asdict(cfg)}))
+    return same and len(list((seq_dir / "image_2").glob("*.png"))) == cfg.frames and (seq_dir / "poses.txt").is_file()

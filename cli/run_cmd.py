@@ -52,6 +52,7 @@ def run_command(
     start: int = typer.Option(0, "--start", help="First frame."),
     end: int | None = typer.Option(None, "--end", help="One past the last frame."),
     resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its last written pose."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an --out file that already holds poses."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
@@ -96,7 +97,7 @@ def run_command(
         odometry, model_dir = DirectOdometry(seq.calib), None
     else:
         model_dir = resolve_model_dir(onnx)
-    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, realtime=realtime)
+    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
         warnings.simplefilter("always")
         task = bar.add_task("run", total=(end or len(seq)) - start, rate="")
@@ -104,7 +105,13 @@ def run_command(
         def tick(done: int, total: int, ms: float) -> None:
             bar.update(task, completed=done, total=total, rate=f"{1000.0 / max(ms, 1e-6):.1f} frames/s")
 
-        summary = run_sequence(seq, model_dir, rc, sc, progress=tick, odometry=odometry)
+        try:
+            summary = run_sequence(seq, model_dir, rc, sc, progress=tick, odometry=odometry)
+        except KeyboardInterrupt:
+            bar.stop()
+            console.print(f"[yellow]interrupted[/]: the poses so far are in {out_path}; the same command with "
+                          "--resume continues from there", highlight=False)
+            raise typer.Exit(130) from None
     seen = set()
     for w in caught:
         msg = str(w.message)

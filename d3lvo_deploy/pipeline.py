@@ -57,6 +57,7 @@ class RunConfig:
     start: int = 0
     end: int | None = None
     resume: bool = False
+    overwrite: bool = False  # replace a trajectory file that already holds poses
     realtime: bool = False  # pace frames by times.txt, like a live sensor
 
 
@@ -92,6 +93,10 @@ def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
+    if not rc.resume and not rc.overwrite and out.is_file() and out.stat().st_size > 0:
+        held = out.read_text().count("\n")
+        raise D3LVOInputError(out, f"already holds {held} poses from an earlier run; --resume continues it, "
+                                   "--overwrite starts over")
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
     summary = RunSummary(frames=n, out=out, resumed_from=len(done))
     summary.latencies_ms = {k: [] for k in (*STAGES, "total")}

@@ -1,11 +1,13 @@
 """The torch-free runtime: ONNX trajectory = torch trajectory, resume after a kill, bad input handling."""
 
+import inspect
 import shutil
 import signal
 import subprocess
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -174,3 +176,23 @@ def test_provider_fallback_warns(small_model):
         assert provs == ["CPUExecutionProvider"] and "falling back" in str(w[0].message)
     with pytest.raises(D3LVOInputError, match="--provider"):
         resolve_providers("tpu")
+
+
+def test_rerun_never_discards_saved_poses(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    out = tmp_path / "p.txt"
+    args = ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(out), "--end", "3"]
+    assert runner.invoke(app, args).exit_code == 0
+    saved = out.read_text()
+    r = runner.invoke(app, args)
+    assert r.exit_code == 1 and "already holds 3 poses" in r.output and "--resume" in r.output and "--overwrite" in r.output
+    assert out.read_text() == saved
+    r = runner.invoke(app, args[:-2] + ["--overwrite"])
+    assert r.exit_code == 0 and len(out.read_text().splitlines()) == 6
+
+
+def test_demo_writes_outside_the_checkout():
+    from cli.demo_cmd import demo_command
+
+    default = inspect.signature(demo_command).parameters["out_dir"].default.default
+    assert not Path(default).resolve().is_relative_to(ROOT)
