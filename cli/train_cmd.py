@@ -50,8 +50,11 @@ def train_command(
     from d3lvo_deploy.extras import require
 
     require("torch", what="d3lvo train")
+    from dataclasses import replace
+
+    from models.checkpoint import load_checkpoint
     from models.config import D3LVOConfig
-    from models.train import TrainConfig, best_path, train
+    from models.train import TrainConfig, TrainingInterrupted, best_path, train
 
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
@@ -63,6 +66,14 @@ def train_command(
     for d in [*data, *val]:
         if not d.is_dir():
             raise D3LVOInputError(d, "sequence folder not found")
+    if resume is not None:
+        ck = load_checkpoint(resume)
+        # the preset (size, levels) comes from the checkpoint; a different mode or head is refused
+        # in train() with the differing fields named
+        preset_keys = ("height", "width", "flow_levels", "gn_extra_levels")
+        if replace(cfg, **{k: getattr(ck["config"], k) for k in preset_keys}) == ck["config"]:
+            cfg = ck["config"]
+        console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
                      device=device, num_workers=workers)
@@ -81,7 +92,13 @@ def train_command(
                 if rec.get("best"):
                     console.print(f"  best so far: saved {best_path(out)}", highlight=False)
 
-        rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
+        try:
+            rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
+        except TrainingInterrupted as e:
+            bar.stop()
+            console.print(f"[yellow]interrupted[/] at step {e.step}: saved {e.path}; continue with --resume {e.path}",
+                          highlight=False)
+            raise typer.Exit(130) from None
     if rank0:
         console.print(f"checkpoint {out} at step {rec.get('step')} (loss {rec.get('loss', float('nan')):.4f})",
                       highlight=False)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn.functional as F
-from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
+from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.evaluation import evaluate
@@ -166,6 +166,29 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
     return {k: float(np.mean(v)) for k, v in acc.items()}
 
 
+class EpochSampler(Sampler):
+    """A fresh permutation per epoch from (seed, epoch), from `skip` samples on: a run resumed at
+    step k draws exactly the batches an uninterrupted run would have drawn after step k."""
+
+    def __init__(self, n: int, seed: int):
+        self.n, self.seed, self.epoch, self.skip = n, seed, 0, 0
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+        return iter(torch.randperm(self.n, generator=g)[self.skip:].tolist())
+
+    def __len__(self) -> int:
+        return self.n - self.skip
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during training, after the current step was checkpointed."""
+
+    def __init__(self, step: int, path: str):
+        super().__init__(f"interrupted at step {step}")
+        self.step, self.path = step, path
+
+
 def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
           on_step: Callable[[int, dict], None] | None = None) -> dict:
     """Train; returns the final record (step, losses, validation). `on_step` drives a progress bar."""
@@ -197,6 +220,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
             raise D3LVOInputError(resume, "its optimizer state does not fit this trainer (older toolkit "
                                           "version?); train afresh instead of --resume") from None
         step, history = ck["step"], ck.get("history", [])
+        if "rng" in ck:  # dropout draws continue where they stopped
+            torch.set_rng_state(ck["rng"])
         sched.last_epoch = step
         for g, base in zip(opt.param_groups, sched.base_lrs):
             g["lr"] = base * lr_factor(step, tc.warmup, tc.steps)
@@ -208,60 +233,73 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     if distributed:
         sampler = DistributedSampler(data, num_replicas=world, rank=rank, seed=tc.seed, drop_last=True)
     else:
-        sampler = RandomSampler(data, generator=torch.Generator().manual_seed(tc.seed))
+        sampler = EpochSampler(len(data), tc.seed)
     if not resume and tc.loss.balance_init == "data":
         criterion.init_balance(*data.identity_errors())
     batch = min(tc.batch_size, max(len(data) // world, 1))
-    loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True)
+    # its own generator: each new iterator draws a seed, which must not come from the global RNG
+    # that dropout uses (a resumed run creates one iterator more than an uninterrupted one)
+    loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True,
+                        generator=torch.Generator().manual_seed(tc.seed))
 
     record: dict = {}
     scored = [h for h in history if "val" in h]
     best = min((val_score(h["val"]) for h in scored), default=math.inf)
-    epoch = step // max(len(loader), 1)
+    per_epoch = max(len(data) // (batch * world), 1)
+    epoch = step // per_epoch
     t0 = time.perf_counter()
-    while step < tc.steps:
-        data.epoch = epoch
-        if distributed:
-            sampler.set_epoch(epoch)
-        for b in loader:
-            if step >= tc.steps:
-                break
-            ddp_model.train()
-            out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
-                            b["K"].to(device), b["init"].to(device))
-            pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
-            comp = completion_loss(out, b, device)
-            fl = flow_loss(out["flows"], b, device)
-            loss = pose_loss + tc.loss.completion_weight * comp + tc.loss.flow_weight * fl
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"loss became {float(loss)} at step {step}")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
-            opt.step()
-            sched.step()
-            step += 1
-            record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),
-                      "completion_l1": float(comp.detach()), "flow_epe": float(fl.detach()),
-                      "s_t": float(criterion.s_t.detach()),
-                      "s_q": float(criterion.s_q.detach()), **parts,
-                      "seconds": time.perf_counter() - t0}
-            if rank == 0:
-                if tc.val and (step % tc.val_every == 0 or step == tc.steps):
-                    record["val"] = validate(model, tc.val)
-                    if val_score(record["val"]) < best:
-                        # long CPU runs overfit small synthetic sets: keep the best validated weights
-                        best = val_score(record["val"])
-                        record["best"] = True
-                        save_checkpoint(best_path(tc.out), model, cfg, loss=criterion.state_dict(), step=step,
-                                        history=history + [record], train_config=asdict(tc))
-                history.append(record)
-                if step % tc.ckpt_every == 0 or step == tc.steps:
-                    save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
-                                    step=step, history=history, train_config=asdict(tc))
-                if on_step is not None:
-                    on_step(step, record)
-        epoch += 1
+    try:
+        while step < tc.steps:
+            data.epoch = epoch
+            if distributed:
+                sampler.set_epoch(epoch)
+            else:
+                sampler.epoch, sampler.skip = epoch, (step - epoch * per_epoch) * batch
+            for b in loader:
+                if step >= tc.steps:
+                    break
+                ddp_model.train()
+                out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
+                                b["K"].to(device), b["init"].to(device))
+                pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
+                comp = completion_loss(out, b, device)
+                fl = flow_loss(out["flows"], b, device)
+                loss = pose_loss + tc.loss.completion_weight * comp + tc.loss.flow_weight * fl
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"loss became {float(loss)} at step {step}")
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
+                opt.step()
+                sched.step()
+                step += 1
+                record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),
+                          "completion_l1": float(comp.detach()), "flow_epe": float(fl.detach()),
+                          "s_t": float(criterion.s_t.detach()),
+                          "s_q": float(criterion.s_q.detach()), **parts,
+                          "seconds": time.perf_counter() - t0}
+                if rank == 0:
+                    if tc.val and (step % tc.val_every == 0 or step == tc.steps):
+                        record["val"] = validate(model, tc.val)
+                        if val_score(record["val"]) < best:
+                            # long CPU runs overfit small synthetic sets: keep the best validated weights
+                            best = val_score(record["val"])
+                            record["best"] = True
+                            save_checkpoint(best_path(tc.out), model, cfg, loss=criterion.state_dict(), step=step,
+                                            history=history + [record], train_config=asdict(tc))
+                    history.append(record)
+                    if step % tc.ckpt_every == 0 or step == tc.steps:
+                        save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
+                                        step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state())
+                    if on_step is not None:
+                        on_step(step, record)
+            epoch += 1
+    except KeyboardInterrupt:
+        # Ctrl-C: keep the step just finished, so that --resume loses nothing
+        if rank == 0 and step > 0:
+            save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
+                            step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state())
+        raise TrainingInterrupted(step, tc.out) from None
     if distributed:
         dist.barrier()
         dist.destroy_process_group()

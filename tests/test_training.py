@@ -136,15 +136,44 @@ def test_resume_continues_the_step_count(small_synth, tmp_path):
                         "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1"],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+    # no --preset: the checkpoint's (small) is taken, not the default one
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
-                        "--steps", "3", "--preset", "small", "--batch-size", "1", "--resume", str(tmp_path / "a.pt")],
+                        "--steps", "3", "--batch-size", "1", "--resume", str(tmp_path / "a.pt")],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+    assert "resumed at step 2" in r.stderr
     assert load_checkpoint(tmp_path / "a.pt")["step"] == 3
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "b.pt"),
                         "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume", str(tmp_path / "a.pt")],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 1 and "another model config" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_resume_equals_an_uninterrupted_run(small_synth, tmp_path):
+    """1 step, then --resume to 3, equals 3 steps in one go: weights, s_t, s_q, optimizer state
+    (the sampler, augmentation and dropout draws continue where they stopped; 5 pairs in batches of
+    2 make 2 steps an epoch, so the resumed run starts mid-epoch and crosses into the next)."""
+    from models.train import TrainConfig, train
+
+    torch.set_num_threads(1)
+    cfg = D3LVOConfig.small(height=64, width=224, pose_head="mlp")  # the head with dropout
+
+    def run(out, steps, resume=None):
+        tc = TrainConfig(data=[str(small_synth)], out=str(out), steps=steps, batch_size=2, ckpt_every=1, warmup=2)
+        train(cfg, tc, resume=resume)
+        return load_checkpoint(out)
+
+    one = run(tmp_path / "one.pt", 3)
+    run(tmp_path / "two.pt", 1)
+    two = run(tmp_path / "two.pt", 3, resume=str(tmp_path / "two.pt"))
+    assert one["step"] == two["step"] == 3
+    for k, v in one["model"].items():
+        torch.testing.assert_close(two["model"][k], v, rtol=0, atol=0, msg=k)
+    for k in ("s_t", "s_q"):
+        assert one["loss"][k].item() == two["loss"][k].item()
+    for a, b in zip(one["optimizer"]["state"].values(), two["optimizer"]["state"].values()):
+        for k in a:
+            torch.testing.assert_close(b[k], a[k], rtol=0, atol=0)
 
 
 def test_ddp_two_cpu_processes(small_synth, tmp_path):
