@@ -66,11 +66,14 @@ def test_parity_reduced_size(exported, small_synth):
     assert rep.chained_t_m < 1e-4 and rep.chained_r_deg < 1e-3
 
 
-@pytest.mark.parametrize("kw", [dict(mode="rgb"), dict(mode="rgb_sparse"), dict(completion="ipbasic")])
+@pytest.mark.parametrize("kw", [dict(mode="rgb"), dict(mode="rgb_sparse"), dict(completion="ipbasic"),
+                                dict(pose_head="mlp")])
 def test_parity_other_modes(tmp_path, small_synth, kw):
     ck, cfg = _ckpt(tmp_path, **kw)
     m = export_checkpoint(ck, ExportConfig(out=tmp_path / "onnx"))
-    assert "completion" not in m["stages"]
+    assert ("completion" in m["stages"]) == (kw == dict(pose_head="mlp"))
+    inputs = [i["name"] for i in m["stages"]["flowpose"]["inputs"]]
+    assert ("init_pose" in inputs) == (kw.get("mode") != "rgb" and kw.get("pose_head") != "mlp")
     rep = run_parity(ck, tmp_path / "onnx", small_synth, frames=2)
     assert rep.passed, rep.to_dict()
 

@@ -71,6 +71,8 @@ def test_runtime_cli_runs_without_the_training_extras(small_synth, tmp_path):
     assert r.returncode == 0, r.stderr
     r = d3lvo("eval", "--gt", str(small_synth / "poses.txt"), "--est", est)
     assert r.returncode == 0 and "ATE" in r.stdout, r.stderr
+    r = d3lvo("bench", "--no-torch", "--seq-dir", seq, "--runs", "2")
+    assert r.returncode == 0 and "frames/s" in r.stdout, r.stderr
     for args, extra in ((["train", "--data", seq, "--out", str(tmp_path / "c.pt")], "train"),
                         (["synth", "--out", str(tmp_path / "s"), "--frames", "2"], "synth"),
                         (["eval", "--gt", str(small_synth / "poses.txt"), "--est", est, "--plot", str(tmp_path / "x.png")], "plot"),

@@ -1,0 +1,32 @@
+"""`python -m models.pair_eval CKPT SEQ [SEQ ...]`: a checkpoint's frame-pair errors beside their
+baselines on held-out sequences (flow EPE against zero flow per level, rotation against no
+rotation, translation against no motion), the numbers "the flow is learned" and "it predicts
+rotation" rest on. Same function as the training's validation (`models.train.pair_metrics`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from .checkpoint import build_model, load_checkpoint
+from .train import pair_metrics
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("ckpt")
+    ap.add_argument("seqs", nargs="+")
+    ap.add_argument("--pairs", type=int, default=48, help="evenly spaced pairs per sequence")
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    model = build_model(load_checkpoint(args.ckpt))
+    for s in args.seqs:
+        m = pair_metrics(model, [s], pairs=args.pairs)
+        print(json.dumps({"sequence": s, **{k: round(v, 4) for k, v in m.items()}}))
+
+
+if __name__ == "__main__":
+    main()
