@@ -53,6 +53,9 @@ def run_command(
     end: int | None = typer.Option(None, "--end", help="One past the last frame."),
     resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its last written pose."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an --out file that already holds poses."),
+    viz: Path | None = typer.Option(None, "--viz", help="Folder for pictures of what the network sees (image, LiDAR "
+                                    "and completed depth, flow, pose confidence), one PNG per --viz-every frames."),
+    viz_every: int = typer.Option(10, "--viz-every", help="With --viz: every N-th frame."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
@@ -97,7 +100,10 @@ def run_command(
         odometry, model_dir = DirectOdometry(seq.calib), None
     else:
         model_dir = resolve_model_dir(onnx)
-    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime)
+    if viz is not None and (method != "d3lvo" or viz_every < 1):
+        raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
+    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime,
+                   viz_dir=viz, viz_every=viz_every)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
         warnings.simplefilter("always")
         task = bar.add_task("run", total=(end or len(seq)) - start, rate="")

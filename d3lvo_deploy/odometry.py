@@ -63,6 +63,8 @@ class Odometry:
         self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
         self.pre: FramePreprocessor | None = None
         self.last_timing = FrameTiming()
+        self.keep_outputs = False  # keep the last frame's intermediate tensors in `last` (for --viz)
+        self.last: dict = {}
         self.reset()
 
     @property
@@ -99,8 +101,12 @@ class Odometry:
         inv = pre.invdepth_input(clean_scan(points) if self.model.depth_input != "none" else None)
         t["project"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
+        if self.keep_outputs:
+            self.last = {"image": pre.view.apply_image(image), "sparse_invdepth": inv}
         if "completion" in self.model.sessions:
             inv = self.model.complete(rgb, inv)
+        if self.keep_outputs:
+            self.last["dense_invdepth"] = inv
         t["completion"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
         enc = self.model.encode(rgb, inv)
@@ -115,6 +121,8 @@ class Odometry:
         if self._prev is not None:
             camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None
             out = self.model.flow_pose(self._prev, enc, camera)
+            if self.keep_outputs:
+                self.last["flowpose"] = out
             A2 = out["matrix"][0].astype(np.float64)
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")

@@ -59,6 +59,8 @@ class RunConfig:
     resume: bool = False
     overwrite: bool = False  # replace a trajectory file that already holds poses
     realtime: bool = False  # pace frames by times.txt, like a live sensor
+    viz_dir: Path | None = None  # write a picture of what the network sees every `viz_every` frames
+    viz_every: int = 10
 
 
 def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
@@ -74,6 +76,24 @@ def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
     if len(traj) > n_max:
         raise D3LVOInputError(path, f"holds {len(traj)} poses, more than the {n_max} frames of this run")
     return traj.poses
+
+
+def _write_viz(path: Path, odo) -> None:
+    """One panel of what the network saw for this frame (d3lvo_deploy.viz)."""
+    from .viz import frame_panel, write_panel
+
+    last, min_d = odo.last, float(odo.model.config["min_depth"])
+    metres = lambda inv: np.divide(min_d, inv, out=np.zeros_like(inv), where=inv > 0)[0, 0]  # noqa: E731
+    out = last.get("flowpose", {})
+    flows = sorted((k for k in out if k.startswith("flow_l")), key=lambda k: int(k[6:]))
+    confs = sorted((k for k in out if k.startswith("confidence_l")), key=lambda k: int(k[12:]))
+    dense = last.get("dense_invdepth") if "completion" in odo.model.sessions else None
+    panel = frame_panel(last["image"], metres(last["sparse_invdepth"]), None if dense is None else metres(dense),
+                        out[flows[0]][0] if flows else None, out[confs[0]][0, 0] if confs else None)
+    try:
+        write_panel(path, panel)
+    except OSError as e:
+        raise D3LVOInputError(path, f"cannot write the picture ({e})") from None
 
 
 def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
@@ -127,7 +147,11 @@ def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig
                 raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
                                               f"{out}, fix the frame and rerun with --resume") from None
             read_ms = (time.perf_counter() - t0) * 1000
+            if rc.viz_dir is not None:
+                odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
             pose = odo.step(image, points)
+            if rc.viz_dir is not None and odo.keep_outputs:
+                _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", odo)
             line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
             fh.write(line + "\n")
             fh.flush()

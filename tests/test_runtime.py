@@ -196,3 +196,23 @@ def test_demo_writes_outside_the_checkout():
 
     default = inspect.signature(demo_command).parameters["out_dir"].default.default
     assert not Path(default).resolve().is_relative_to(ROOT)
+
+
+def test_viz_writes_a_panel_per_chosen_frame(small_model, small_synth, tmp_path):
+    import cv2
+
+    from d3lvo_deploy.viz import BAR, flow_to_rgb
+
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "p.txt"),
+                            "--viz", str(tmp_path / "viz"), "--viz-every", "2"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["000002.png", "000004.png"]
+    img = cv2.imread(str(tmp_path / "viz" / "000002.png"))
+    h, w = 64, 224  # the test model's network view
+    assert img.shape == (5 * (h + BAR), w, 3)  # camera, LiDAR, completion, flow, confidence
+    # the flow coding: rightward flow is red, leftward cyan, no flow white
+    f = np.zeros((2, 1, 3), np.float32)
+    f[0, 0, 0], f[0, 0, 2] = 1.0, -1.0
+    rgb = flow_to_rgb(f, 1.0)[0]
+    assert tuple(rgb[0]) == (255, 0, 0) and tuple(rgb[1]) == (255, 255, 255) and tuple(rgb[2]) == (0, 255, 255)
