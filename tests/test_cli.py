@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from d3lvo_deploy.geometry import make_se3
-from d3lvo_deploy.poses import write_poses
+from d3lvo_deploy.poses import read_poses, write_poses
 
 runner = CliRunner()
 
@@ -79,9 +79,14 @@ def test_synth_then_eval(tmp_path):
     r = runner.invoke(app, ["synth", "--out", str(out), "--frames", "3", "--size", "320x96", "--seed", "4"])
     assert r.exit_code == 0, r.output
     assert len(list((out / "image_2").glob("*.png"))) == 3
-    r = runner.invoke(app, ["eval", "--gt", str(out / "poses.txt"), "--est", str(out / "poses.txt"), "--json"])
+    # an estimate twice as long as the GT: ATE = RMS of the GT's distances from the start
+    gt = read_poses(out / "poses.txt").poses
+    est = gt.copy()
+    est[:, :3, 3] *= 2.0
+    write_poses(tmp_path / "est.txt", est)
+    r = runner.invoke(app, ["eval", "--gt", str(out / "poses.txt"), "--est", str(tmp_path / "est.txt"), "--json"])
     assert r.exit_code == 0
-    assert json.loads(r.stdout)["ate"] == 0.0
+    assert json.loads(r.stdout)["ate"] == pytest.approx(np.sqrt((gt[:, :3, 3] ** 2).sum(1).mean()), rel=1e-6)
 
 
 def test_synth_bad_size_and_unwritable(tmp_path):

@@ -70,6 +70,18 @@ def test_alignment_undoes_a_similarity():
     assert res.scale == pytest.approx(1 / 0.37, rel=1e-6)
 
 
+def test_scaled_real_gt_has_the_hand_computed_ate():
+    """Positions scaled by 1.01 about the start: ATE (no alignment) is 1 % of the RMS distance
+    from the start, computed here from the GT alone; no rotation error at all."""
+    gt = read_poses(shared_path("kitti_gt_poses", "05.txt"))
+    est = gt.poses.copy()
+    est[:, :3, 3] = gt.poses[0, :3, 3] + 1.01 * (gt.poses[:, :3, 3] - gt.poses[0, :3, 3])
+    res = evaluate(gt, Trajectory.from_poses(est))
+    d = gt.poses[:, :3, 3] - gt.poses[0, :3, 3]
+    assert res.ate == pytest.approx(0.01 * np.sqrt((d ** 2).sum(1).mean()), rel=1e-6)
+    assert res.r_rel == pytest.approx(0.0, abs=1e-6) and 0.5 < res.t_rel <= 1.0 + 1e-9  # 1 % on straight segments
+
+
 @pytest.mark.parametrize("seq", [f"{i:02d}" for i in range(11)])
 def test_real_gt_against_itself_is_zero(seq):
     gt = read_poses(shared_path("kitti_gt_poses", f"{seq}.txt"))
