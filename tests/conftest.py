@@ -23,6 +23,15 @@ def shared_path(*parts: str) -> Path:
     return p
 
 
+@pytest.fixture(autouse=True)
+def _seeded():
+    """Every test starts from the same torch seed, so that a model a test builds does not depend
+    on which tests ran before it."""
+    import torch
+
+    torch.manual_seed(0)
+
+
 @pytest.fixture(scope="session")
 def small_synth(tmp_path_factory) -> Path:
     """A 6-frame, 620x188 synthetic sequence, LiDAR without range noise so geometry checks are exact."""
