@@ -103,13 +103,14 @@ class Odometry:
         t0 = time.perf_counter()
         if self.keep_outputs:
             self.last = {"image": pre.view.apply_image(image), "sparse_invdepth": inv}
+        sparse = inv
         if "completion" in self.model.sessions:
             inv = self.model.complete(rgb, inv)
         if self.keep_outputs:
             self.last["dense_invdepth"] = inv
         t["completion"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
-        enc = self.model.encode(rgb, inv)
+        enc = self.model.encode(rgb, inv, sparse)
         t["encoder"] = (time.perf_counter() - t0) * 1000
         self.last_timing = FrameTiming(t)
         return enc

@@ -129,10 +129,20 @@ class StageModel:
         """Normalised RGB + sparse inverse depth -> dense inverse depth (see export.stages)."""
         return self.run("completion", {"rgb_norm": rgb_norm, "sparse_invdepth": sparse_inv})["dense_invdepth"]
 
-    def encode(self, rgb_norm: np.ndarray, invdepth: np.ndarray | None) -> dict[str, np.ndarray]:
+    @property
+    def encoder_takes_lidar(self) -> bool:
+        """Whether the encoder also takes the LiDAR returns (`sparse_invdepth`, for the solver)."""
+        return any(i.name == "sparse_invdepth" for i in self.sessions["encoder"].get_inputs())
+
+    def encode(self, rgb_norm: np.ndarray, invdepth: np.ndarray | None,
+               sparse_invdepth: np.ndarray | None = None) -> dict[str, np.ndarray]:
         feeds = {"rgb_norm": rgb_norm}
         if invdepth is not None:
             feeds["invdepth"] = invdepth
+        if self.encoder_takes_lidar:
+            if sparse_invdepth is None:
+                raise ValueError("this encoder also takes the LiDAR returns (sparse_invdepth)")
+            feeds["sparse_invdepth"] = sparse_invdepth
         return self.run("encoder", feeds)
 
     def dense_depth_m(self, invdepth: np.ndarray) -> np.ndarray:

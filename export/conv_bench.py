@@ -26,6 +26,7 @@ from torch import nn
 
 from models.config import D3LVOConfig
 from models.d3lvo import D3LVO
+from models.layers import inverse_depth
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,7 @@ def conv_layers(cfg: D3LVOConfig) -> Counter:
     with torch.no_grad():
         dense = model.complete(rgb, sparse) if cfg.uses_depth else None
         feats, depths, greys = model.encode(rgb, dense)
-        model.flow_pose(feats, feats, depths, greys, greys)
+        model.flow_pose(feats, feats, depths, greys, greys, lidar1=model.lidar_levels(inverse_depth(sparse, cfg.min_depth)))
     for h in handles:
         h.remove()
     return seen

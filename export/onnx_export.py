@@ -74,14 +74,15 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
     with torch.no_grad():
         dense = model.complete_inverse(rgb, inv) if model.cfg.uses_depth else None
         enc = EncoderStage(model)
-        enc_out = enc(rgb, dense) if dense is not None else enc(rgb)
+        enc_in = (rgb, dense, inv) if model.cfg.gn_lidar else (rgb, dense) if dense is not None else (rgb,)
+        enc_out = enc(*enc_in)
     enc_by = dict(zip(enc.output_names, enc_out))
     fp = FlowPoseStage(model)
     camera = {"intrinsics": nominal_intrinsics(model.cfg), "init_pose": torch.eye(4)[None]}
     flowpose = [camera[n] if n in camera else enc_by[n.replace("1_", "_").replace("2_", "_")] for n in fp.input_names]
     return {
         "completion": (rgb, inv),
-        "encoder": (rgb, dense) if dense is not None else (rgb,),
+        "encoder": enc_in,
         "flowpose": tuple(flowpose),
     }
 

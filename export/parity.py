@@ -122,12 +122,12 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             dense_t, dense_o = t_inv, inv
         # stage: encoder (same inputs), then each side's own chain
         enc_names = ort_model.output_names("encoder")
-        enc_t_list = _encoder_outputs(model, t_rgb, dense_t)
+        enc_t_list = _encoder_outputs(model, t_rgb, dense_t, t_inv)
         enc_t = dict(zip(enc_names, [x.numpy() for x in enc_t_list]))
-        enc_same = ort_model.encode(rgb, None if dense_t is None else dense_t.numpy())
+        enc_same = ort_model.encode(rgb, None if dense_t is None else dense_t.numpy(), inv)
         for k in enc_names:
             diff("encoder", k).update(enc_t[k], enc_same[k])
-        enc_o = ort_model.encode(rgb, dense_o)
+        enc_o = ort_model.encode(rgb, dense_o, inv)
         if prev_t is not None:
             cam_t = camera_inputs(pre.K, motion_t) if geometric else None
             cam_o = camera_inputs(pre.K, motion_o) if geometric else None
@@ -148,11 +148,12 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     return rep
 
 
-def _encoder_outputs(model, rgb, dense) -> list[torch.Tensor]:
+def _encoder_outputs(model, rgb, dense, sparse) -> list[torch.Tensor]:
     from .stages import EncoderStage
 
     enc = EncoderStage(model)
-    return list(enc(rgb, dense) if dense is not None else enc(rgb))
+    args = (rgb, dense, sparse) if model.cfg.gn_lidar else (rgb, dense) if dense is not None else (rgb,)
+    return list(enc(*args))
 
 
 def _flowpose_outputs(model, prev: dict, cur: dict, camera: dict | None) -> dict[str, np.ndarray]:

@@ -36,11 +36,13 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
         camera = camera_inputs(pre.K)  # identity start: calibration needs representative tensors, not poses
         for i in range(min(len(seq), max_frames // len(seq_dirs) + 1)):
             rgb = pre.rgb_input(seq.image(i))
-            inv = pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)
+            inv = sparse = pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)
             if "completion" in model.sessions:
                 feeds["completion"].append({"rgb_norm": rgb, "sparse_invdepth": inv})
                 inv = model.complete(rgb, inv)
             enc_in = {"rgb_norm": rgb} | ({"invdepth": inv} if inv is not None else {})
+            if model.encoder_takes_lidar:
+                enc_in["sparse_invdepth"] = sparse
             feeds["encoder"].append(enc_in)
             enc = model.run("encoder", enc_in)
             if prev is not None:

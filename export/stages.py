@@ -26,6 +26,8 @@ def encoder_output_names(model: D3LVO) -> list[str]:
     if cfg.uses_depth:
         names += [f"invdepth_l{lvl}" for lvl in cfg.depth_levels]
     names += [f"grey_l{lvl}" for lvl in cfg.gn_levels]
+    if cfg.gn_lidar:
+        names += [f"lidar_l{lvl}" for lvl in cfg.gn_levels]
     return names
 
 
@@ -36,6 +38,8 @@ def flowpose_input_names(model: D3LVO) -> list[str]:
     if cfg.uses_depth:
         names += [f"invdepth1_l{lvl}" for lvl in cfg.depth_levels]
     names += [f"grey1_l{lvl}" for lvl in cfg.gn_levels] + [f"grey2_l{lvl}" for lvl in cfg.gn_levels]
+    if cfg.gn_lidar:
+        names += [f"lidar1_l{lvl}" for lvl in cfg.gn_levels]
     return names + (list(CAMERA_INPUTS) if cfg.geometric else [])
 
 
@@ -66,15 +70,20 @@ class EncoderStage(nn.Module):
         super().__init__()
         self.model = model
         self.input_names = ["rgb_norm", "invdepth"] if model.cfg.uses_depth else ["rgb_norm"]
+        if model.cfg.gn_lidar:
+            self.input_names.append("sparse_invdepth")  # the LiDAR returns, before completion
         self.output_names = encoder_output_names(model)
 
-    def forward(self, rgb_norm, invdepth=None):
+    def forward(self, rgb_norm, invdepth=None, sparse_invdepth=None):
         cfg = self.model.cfg
         feats, depths, greys = self.model.encode_inverse(rgb_norm, invdepth)
         out = [feats[lvl] for lvl in cfg.flow_levels]
         if cfg.uses_depth:
             out += [depths[lvl] for lvl in cfg.depth_levels]
         out += [greys[lvl] for lvl in cfg.gn_levels]
+        if cfg.gn_lidar:
+            lidar = self.model.lidar_levels(sparse_invdepth)
+            out += [lidar[lvl] for lvl in cfg.gn_levels]
         return tuple(out)
 
 
@@ -91,5 +100,6 @@ class FlowPoseStage(nn.Module):
         byname = dict(zip(self.input_names, tensors))
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
-                                   levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"))
+                                   levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
+                                   levels("lidar1") if self.model.cfg.gn_lidar else None)
         return (*out["flows"], *out.get("confidence", []), out["poses"], out["weights"], out["pose"], out["matrix"])

@@ -37,9 +37,10 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
         box: dict = {}
         # the deployed forms (normalised RGB, inverse depth), as the ONNX stages get them
         ms["completion"] = timed(lambda: box.__setitem__("d", model.complete_inverse(rgb, inv) if inv is not None else None))
-        ms["encoder"] = timed(lambda: box.__setitem__("e", model.encode_inverse(rgb, box["d"])))
+        ms["encoder"] = timed(lambda: box.__setitem__("e", (*model.encode_inverse(rgb, box["d"]), model.lidar_levels(inv))))
         cur = box["e"]
-        ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K)) if prev is not None else 0.0
+        ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, None, prev[3])) \
+            if prev is not None else 0.0
         prev = cur
         if k >= warmup:
             times.add(ms)

@@ -57,6 +57,10 @@ class D3LVOConfig:
     gn_features: int = 8  # learned feature channels beside the grey image in the residual
     gn_huber: float = 0.1  # Huber threshold on the residual (normalised-RGB units)
     gn_damping: float = 1e-3  # Levenberg-Marquardt lambda (relative to diag(H))
+    # which cells of frame t-1 the solver back-projects: "lidar", those whose pixel has a LiDAR
+    # return (exact depth), or "dense", every cell with the completed depth. Measured on the
+    # held-out 09-motion drive, same weights: t_rel 1.22 % (lidar) vs 13.50 % (dense), step 300
+    gn_points: str = "lidar"
     pose_hidden: tuple[int, int, int] = (256, 128, 64)  # P: the paper's MLP
     pose_width: int = 32  # the two strided convs before the pose MLP
     pose_pool: tuple[int, int] = (2, 6)
@@ -81,6 +85,8 @@ class D3LVOConfig:
             raise ValueError("pose_head gauss_newton needs depth (back-projection); use pose_head=mlp with mode rgb")
         if any(not 0 <= lvl <= 3 for lvl in self.gn_extra_levels):
             raise ValueError("gn_extra_levels are pyramid levels 0..3")
+        if self.gn_points not in ("lidar", "dense"):
+            raise ValueError(f"gn_points must be lidar or dense, not {self.gn_points!r}")
         if self.correlation not in ("tiled", "slices", "stacked"):
             raise ValueError(f"correlation must be tiled, slices or stacked, not {self.correlation!r}")
 
@@ -104,6 +110,12 @@ class D3LVOConfig:
             return ()
         extra = sorted((lvl for lvl in set(self.gn_extra_levels) if lvl < min(self.flow_levels)), reverse=True)
         return (*self.flow_levels, *extra)
+
+    @property
+    def gn_lidar(self) -> bool:
+        """Whether the solver reads the LiDAR returns themselves (an input beside the completed
+        depth): with learned completion; rgb_sparse's depth is the LiDAR already, IP-Basic's is dense."""
+        return self.geometric and self.gn_points == "lidar" and self.learned_completion
 
     @property
     def depth_levels(self) -> tuple[int, ...]:
@@ -130,6 +142,7 @@ class D3LVOConfig:
             raise ValueError(f"unknown config keys {sorted(unknown)}")
         d = dict(d)
         d.setdefault("pose_head", "mlp")  # configs written before the Gauss-Newton head had the MLP
+        d.setdefault("gn_points", "dense")  # and before gn_points, the solver used every cell
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
     @classmethod

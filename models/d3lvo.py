@@ -73,14 +73,24 @@ class D3LVO(nn.Module):
         feats, depths = self.encoder(rgb_norm, inv if self.cfg.uses_depth else None)
         return feats, depths, self.encoder.grey_pyramid(rgb_norm)
 
+    def lidar_levels(self, sparse_inv: torch.Tensor | None) -> list[torch.Tensor | None]:
+        """The LiDAR returns (inverse depth, 0 = none) at each Gauss-Newton level's cell centres
+        (input pixel s*i, as `PyramidEncoder`), for the solver's back-projection; None where unused."""
+        out: list[torch.Tensor | None] = []
+        for lvl in range(4):
+            s = 2 ** (lvl + 1)
+            out.append(sparse_inv[..., ::s, ::s] if self.cfg.gn_lidar and lvl in self.cfg.gn_levels else None)
+        return out
+
     # -- stage 3 -------------------------------------------------------------------------------
     def flow_pose(self, feats1, feats2, depths1, grey1=None, grey2=None, K: torch.Tensor | None = None,
-                  init: torch.Tensor | None = None) -> dict[str, torch.Tensor | list[torch.Tensor]]:
+                  init: torch.Tensor | None = None, lidar1=None) -> dict[str, torch.Tensor | list[torch.Tensor]]:
         """Two frames' encoder outputs -> flows, per-level and final relative pose.
 
         The Gauss-Newton head also takes K (B,4) fx, fy, cx, cy at the network input (default: a
         nominal KITTI-like camera) and init (B,4,4), the starting relative pose (identity by
-        default; the runtime passes the previous frame's motion, a constant-velocity start)."""
+        default; the runtime passes the previous frame's motion, a constant-velocity start);
+        lidar1 (`lidar_levels` of frame t-1) are the cells it back-projects where `gn_lidar`."""
         ref = feats1[self.cfg.flow_levels[0]]
         b = ref.shape[0]
         pose = torch.tensor(IDENTITY, dtype=ref.dtype, device=ref.device).expand(b, 7)
@@ -108,7 +118,10 @@ class D3LVO(nn.Module):
         else:
             K = nominal_intrinsics(self.cfg, b, ref.dtype).to(ref.device) if K is None else K
             init = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(b, 4, 4) if init is None else init
-            levels, weights, maps = self.gn_pose(hidden_by, flow_by, feats1, feats2, grey1, grey2, depths1, K, init)
+            points = lidar1 if self.cfg.gn_lidar else depths1
+            if points is None:
+                raise ValueError("this model's solver back-projects the LiDAR returns: pass lidar1=lidar_levels(...)")
+            levels, weights, maps = self.gn_pose(hidden_by, flow_by, feats1, feats2, grey1, grey2, points, K, init)
             out["confidence"] = [maps[lvl] for lvl in self.cfg.gn_levels]
         final = normalise_pose((weights.unsqueeze(-1) * levels).sum(1))
         out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
@@ -126,5 +139,7 @@ class D3LVO(nn.Module):
         feats, depths, greys = self.encode(torch.cat([rgb1, rgb2]), dense)
         first = lambda xs: [None if x is None else x.chunk(2)[0] for x in xs]  # noqa: E731
         second = lambda xs: [None if x is None else x.chunk(2)[1] for x in xs]  # noqa: E731
-        out.update(self.flow_pose(first(feats), second(feats), first(depths), first(greys), second(greys), K, init))
+        lidar = self.lidar_levels(inverse_depth(depth1, self.cfg.min_depth)) if self.cfg.gn_lidar else None
+        out.update(self.flow_pose(first(feats), second(feats), first(depths), first(greys), second(greys), K, init,
+                                  lidar))
         return out

@@ -147,13 +147,16 @@ def normal_equations(J: torch.Tensor, r: torch.Tensor, w: torch.Tensor):
 
 def damped_step(H: torch.Tensor, g: torch.Tensor, damping: float, max_rot: float = 0.02,
                 max_trans: float = 0.3) -> torch.Tensor:
-    """Levenberg-Marquardt step -inv(H + lambda diag(H) + eps I) g, scaled down (direction kept)
+    """Levenberg-Marquardt step -inv(H + lambda diag(H) + floor I) g, scaled down (direction kept)
     to at most `max_rot` rad and `max_trans` m: a trust region, so that a level whose residuals
     are uninformative (untrained depth, a textureless or occluded view) cannot throw the pose far
     from where the coarser level left it; a good step at 10 Hz is far smaller."""
     eye = torch.eye(6, dtype=H.dtype, device=H.device)
     diag = torch.stack([H[:, i, i] for i in range(6)], -1)  # torch.diagonal exports as EyeLike + If
-    Hd = H + eye * (damping * diag + 1e-6).unsqueeze(-1)
+    # plus 1e-4 of the mean curvature on every axis: with few points (a coarse level, a sparse
+    # scan) one direction can be nearly unobserved, and float rounding would then decide the step
+    floor = 1e-4 * diag.mean(-1, keepdim=True) + 1e-6
+    Hd = H + eye * (damping * diag + floor).unsqueeze(-1)
     xi = -cholesky_solve(Hd, g)
     rho_n = torch.sqrt((xi[:, :3] ** 2).sum(-1, keepdim=True) + 1e-20)
     om_n = torch.sqrt((xi[:, 3:] ** 2).sum(-1, keepdim=True) + 1e-20)

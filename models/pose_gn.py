@@ -1,6 +1,7 @@
 """Depth-aware geometric pose refinement: dT_l = P(F_l, D_l, T_l) as weighted Gauss-Newton (eq. 8-9).
 
-At level l, frame t-1's cells are back-projected with the level's dense depth D_l, moved by the
+At level l, frame t-1's cells are back-projected with the level's depth D_l (the LiDAR returns
+where `gn_points="lidar"`, the default: completed depth between returns misleads the solver), moved by the
 running estimate T_l and projected into frame t, where the residual is the difference of frame
 t's features (sampled bilinearly) and frame t-1's: the grey image (a photometric term, as
 DVL-SLAM's direct LiDAR-visual tracking) and `gn_features` learned channels (feature-metric, as

@@ -11,6 +11,7 @@ from d3lvo_deploy.geometry import accumulate, change_frame
 from d3lvo_deploy.sequence import KittiSequence
 
 from .data import FrameLoader
+from .layers import inverse_depth
 
 
 @torch.no_grad()
@@ -30,9 +31,9 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
         rgb = torch.from_numpy(loader.rgb(i)).permute(2, 0, 1)[None].to(dev)
         depth = torch.from_numpy(loader.depth_input(i))[None, None].to(dev)
         dense = model.complete(rgb, depth) if model.cfg.uses_depth else None
-        cur = model.encode(rgb, dense)
+        cur = (*model.encode(rgb, dense), model.lidar_levels(inverse_depth(depth, model.cfg.min_depth)))
         if prev is not None:
-            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion)
+            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3])
             motion = out["matrix"]
             A2 = motion[0].double().cpu().numpy()
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))

@@ -7,6 +7,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from .config import D3LVOConfig
 from .d3lvo import D3LVO
+from .layers import inverse_depth
 
 
 def _count(fn) -> int:
@@ -23,13 +24,14 @@ def stage_stats(cfg: D3LVOConfig) -> dict[str, dict[str, float]]:
     sparse = torch.rand(1, 1, cfg.height, cfg.width) * 50 * (torch.rand(1, 1, cfg.height, cfg.width) > 0.95)
     dense = model.complete(rgb, sparse) if cfg.uses_depth else None
     feats, depths, greys = model.encode(rgb, dense)
+    lidar = model.lidar_levels(inverse_depth(sparse, cfg.min_depth))
     params = lambda m: sum(p.numel() for p in m.parameters()) if m is not None else 0  # noqa: E731
     flow_params = params(model.flow) + params(model.pose) + params(model.context) + params(model.gn_pose)
     out = {
         "completion": {"params": params(model.completion),
                        "gflops": _count(lambda: model.complete(rgb, sparse)) / 1e9 if model.completion else 0.0},
         "encoder": {"params": params(model.encoder), "gflops": _count(lambda: model.encode(rgb, dense)) / 1e9},
-        "flowpose": {"params": flow_params, "gflops": _count(lambda: model.flow_pose(feats, feats, depths, greys, greys)) / 1e9},
+        "flowpose": {"params": flow_params, "gflops": _count(lambda: model.flow_pose(feats, feats, depths, greys, greys, lidar1=lidar)) / 1e9},
     }
     out["total"] = {"params": sum(v["params"] for v in out.values()), "gflops": sum(v["gflops"] for v in out.values())}
     return out

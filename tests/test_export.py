@@ -84,7 +84,7 @@ def test_dynamic_batch(tmp_path):
     sm = StageModel(tmp_path / "onnx")
     rgb = np.random.rand(3, 3, 64, 224).astype(np.float32)
     depth = np.zeros((3, 1, 64, 224), np.float32)
-    enc = sm.encode(rgb, sm.complete(rgb, depth))
+    enc = sm.encode(rgb, sm.complete(rgb, depth), depth)
     assert enc["feat_l1"].shape[0] == 3
     camera = {"intrinsics": np.tile([[130.0, 130.0, 111.5, 31.5]], (3, 1)), "init_pose": np.tile(np.eye(4), (3, 1, 1))}
     assert sm.flow_pose(enc, enc, camera)["matrix"].shape == (3, 4, 4)
