@@ -21,6 +21,19 @@ def default_calibration(tmp: Path) -> list[Path]:
     return seqs + ([real] if real is not None else [])
 
 
+def _settings(pairs: list[str]) -> dict:
+    out: dict = {}
+    for p in pairs:
+        key, sep, val = p.partition("=")
+        if not sep:
+            raise D3LVOInputError(None, f"--set takes KEY=VALUE, not {p!r}")
+        try:
+            out[key] = int(val) if val.isdigit() else float(val) if val.replace(".", "", 1).replace("e-", "", 1).isdigit() else val
+        except ValueError:
+            out[key] = val
+    return out
+
+
 @friendly_errors
 def export_command(
     ckpt: Path = typer.Option(..., "--ckpt", help="D3LVO checkpoint (from `d3lvo train`)."),
@@ -30,6 +43,8 @@ def export_command(
     width: int | None = typer.Option(None, "--width", help="Input width (default: the checkpoint's)."),
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
     precision: str = typer.Option("fp32", "--precision", help="fp32 | fp16 | int8 (static, QDQ, per-channel)."),
+    solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (gn_points, "
+                                     "gn_iters, gn_huber, gn_damping), e.g. --set gn_points=dense; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:
@@ -47,7 +62,7 @@ def export_command(
         fp32_dir = out if precision == "fp32" else Path(tmpd) / "fp32"
         with console.status("exporting"):
             m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
-                                                     dynamic_batch=dynamic_batch),
+                                                     dynamic_batch=dynamic_batch, solver=_settings(solver)),
                                   progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
         if precision != "fp32":
             from export.quantize import quantize_folder

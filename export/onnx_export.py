@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import onnx
@@ -38,6 +38,12 @@ class ExportConfig:
     height: int | None = None  # default: the checkpoint's config
     width: int | None = None
     dynamic_batch: bool = False
+    # solver settings that have no weights, e.g. {"gn_points": "lidar"}: the same weights exported
+    # with another Gauss-Newton configuration (to measure one against the other)
+    solver: dict = field(default_factory=dict)
+
+
+SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping")
 
 
 def non_standard_nodes(model: onnx.ModelProto) -> list[str]:
@@ -136,7 +142,13 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         raise D3LVOInputError(None, f"--height/--width {w}x{h} must be divisible by 16")
     if ec.opset < 16:
         raise D3LVOInputError(None, f"--opset {ec.opset}: GridSample (bilinear warping) needs opset 16 or newer")
-    cfg = replace(cfg, height=h, width=w)
+    bad = sorted(set(ec.solver) - set(SOLVER_KEYS))
+    if bad:
+        raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
+    try:
+        cfg = replace(cfg, height=h, width=w, **ec.solver)
+    except (TypeError, ValueError) as e:
+        raise D3LVOInputError(None, f"--set: {e}") from None
     model = build_model({**ck, "config": cfg})
     out = Path(ec.out)
     try:

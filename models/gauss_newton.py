@@ -78,31 +78,32 @@ def backproject(invdepth: torch.Tensor, K: torch.Tensor, scale: float, min_depth
     u = torch.arange(w, dtype=K.dtype, device=K.device).view(1, 1, w) * scale
     inv = invdepth[:, 0]
     valid = inv > 1e-4
-    z = min_depth / torch.where(valid, inv, torch.ones_like(inv))
+    z = min_depth / inv.clamp(min=1e-4)  # no depth: masked by `valid`
     X = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z.expand(b, h, w)], -1)
     return X.reshape(b, h * w, 3), valid.reshape(b, h * w).to(K.dtype)
 
 
 def project(X: torch.Tensor, K: torch.Tensor, scale: float):
-    """(B,N,3) -> level-grid coordinates (B,N,2), the 2x3 projection Jacobian in level cells
-    (B,N,2,3), and (B,N) 'in front of the camera'."""
-    fx, fy, cx, cy = [K[:, i].view(-1, 1) / (scale if i < 4 else 1) for i in range(4)]
+    """(B,N,3) -> level-grid coordinates (B,N,2) and (B,N) 'in front of the camera'."""
+    fx, fy, cx, cy = [K[:, i].view(-1, 1) / scale for i in range(4)]
     x, y, z = X.unbind(-1)
     front = (z > 0.1).to(X.dtype)
-    zi = 1.0 / torch.where(z > 0.1, z, torch.ones_like(z))
-    u = fx * x * zi + cx
-    v = fy * y * zi + cy
-    o = torch.zeros_like(x)
-    J = torch.stack([fx * zi, o, -fx * x * zi * zi, o, fy * zi, -fy * y * zi * zi], -1).reshape(X.shape[:-1] + (2, 3))
-    return torch.stack([u, v], -1), J, front
+    zi = 1.0 / z.clamp(min=0.1)  # behind the camera: masked by `front`
+    return torch.stack([fx * x * zi + cx, fy * y * zi + cy], -1), front
 
 
-def point_jacobian(X: torch.Tensor) -> torch.Tensor:
-    """d(exp(xi) X)/d xi at xi = 0: (B,N,3,6) = [I | -[X]x], built elementwise (an Expand of
-    the identity to a traced shape exports as an If per call)."""
+def pixel_jacobian(X: torch.Tensor, K: torch.Tensor, scale: float) -> torch.Tensor:
+    """d pi(exp(xi) X) / d xi at xi = 0, in level cells: (B,N,2,6). The projection's 2x3
+    Jacobian times [I | -[X]x], multiplied out (row a of it is [a, X x a]); its zeros are made
+    from the data (x * 0), since a zeros_like of a static shape is folded into the graph as a
+    constant per call (10 MB of them at 608x176)."""
+    fx, fy = [K[:, i].view(-1, 1) / scale for i in range(2)]
     x, y, z = X.unbind(-1)
-    o, l = torch.zeros_like(x), torch.ones_like(x)
-    return torch.stack([l, o, o, o, z, -y, o, l, o, -z, o, x, o, o, l, y, -x, o], -1).reshape(X.shape[:-1] + (3, 6))
+    zi = 1.0 / z.clamp(min=0.1)  # behind the camera: masked by `front`
+    xz, yz, o = x * zi, y * zi, x * 0.0
+    ju = [fx * zi, o, -fx * xz * zi, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz]
+    jv = [o, fy * zi, -fy * yz * zi, -fy * (1 + yz * yz), fy * xz * yz, fy * xz]
+    return torch.stack(ju + jv, -1).reshape(X.shape[:-1] + (2, 6))
 
 
 def sample(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

@@ -59,7 +59,7 @@ class GaussNewtonPose(nn.Module):
     def rigid_flow(self, M: torch.Tensor, X: torch.Tensor, K: torch.Tensor, scale: float, shape) -> torch.Tensor:
         """Flow of frame t-1's cells under M, in level cells (B,2,h,w)."""
         h, w = shape
-        uv, _, _ = gn.project(gn.apply(M, X), K, scale)
+        uv, _ = gn.project(gn.apply(M, X), K, scale)
         v, u = torch.meshgrid(torch.arange(h, dtype=X.dtype, device=X.device),
                               torch.arange(w, dtype=X.dtype, device=X.device), indexing="ij")
         grid = torch.stack([u, v], -1).reshape(1, h * w, 2)
@@ -75,7 +75,7 @@ class GaussNewtonPose(nn.Module):
         weight = conf.reshape(b, h * w) * valid
         for _ in range(self.cfg.gn_iters):
             Xt = gn.apply(M, X)
-            uv, Jp, front = gn.project(Xt, K, scale)
+            uv, front = gn.project(Xt, K, scale)
             s = gn.sample(stack, uv)  # (B,3C,N)
             # fades from 1 one cell inside the image to 0 at its border: a point crossing the border
             # must not switch its weight on or off (a jump in the solution that float rounding triggers)
@@ -83,7 +83,7 @@ class GaussNewtonPose(nn.Module):
             inside = torch.minimum(torch.minimum(u, w - 1 - u), torch.minimum(v, h - 1 - v)).clamp(0.0, 1.0)
             r = (s[:, :c] - ref).transpose(1, 2)  # (B,N,C)
             G = torch.stack([s[:, c:2 * c], s[:, 2 * c:]], -1).transpose(1, 2)  # (B,N,C,2)
-            J = G @ (Jp @ gn.point_jacobian(Xt))  # (B,N,C,6)
+            J = G @ gn.pixel_jacobian(Xt, K, scale)  # (B,N,C,6)
             wgt = weight * front * inside * gn.huber_weights((r * r).sum(-1) / c, self.cfg.gn_huber)
             H, g = gn.normal_equations(J, r, wgt)
             M = gn.update(M, gn.damped_step(H, g, self.cfg.gn_damping))

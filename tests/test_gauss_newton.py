@@ -41,14 +41,17 @@ def test_matrix_to_pose_matches_numpy_quaternion():
         np.testing.assert_allclose(p[3:], rot_to_quat(M[0, :3, :3].numpy()), atol=1e-12)
 
 
-def test_projection_jacobian_matches_autograd():
-    X = torch.tensor([[[1.0, -0.5, 8.0], [-3.0, 1.0, 20.0]]], dtype=torch.float64, requires_grad=True)
+def test_pixel_jacobian_matches_autograd_through_the_update():
+    """d pi(exp(xi) X) / d xi at 0, against autograd through `update` and `project`."""
+    X = torch.tensor([[[1.0, -0.5, 8.0], [-3.0, 1.0, 20.0]]], dtype=torch.float64)
     K = torch.tensor([[300.0, 310.0, 150.0, 40.0]], dtype=torch.float64)
-    uv, J, _ = gn.project(X, K, 4.0)
+    J = gn.pixel_jacobian(X, K, 4.0)
+    xi = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    uv, _ = gn.project(gn.apply(gn.update(torch.eye(4, dtype=torch.float64)[None], xi), X), K, 4.0)
     for n in range(2):
         for k in range(2):
-            (grad,) = torch.autograd.grad(uv[0, n, k], X, retain_graph=True)
-            np.testing.assert_allclose(J[0, n, k].detach(), grad[0, n], rtol=1e-12)
+            (grad,) = torch.autograd.grad(uv[0, n, k], xi, retain_graph=True)
+            np.testing.assert_allclose(J[0, n, k].numpy(), grad[0].numpy(), rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("motion", ["forward", "turn"])
@@ -72,18 +75,18 @@ def test_gauss_newton_recovers_a_known_motion(motion):
         true[0, :3, :3] = gn.so3_exp(torch.tensor([[0.0, 0.02, 0.0]], dtype=torch.float64))[0]
         true[0, :3, 3] = torch.tensor([0.1, 0.0, -0.5])
     X, valid = gn.backproject(inv, K, scale, 0.5)
-    uv, _, _ = gn.project(gn.apply(true, X), K, scale)
+    uv, _ = gn.project(gn.apply(true, X), K, scale)
     f1 = gn.sample(f2, uv).reshape(1, 2, h, w)
     inside = ((uv[..., 0] >= 1) & (uv[..., 0] <= w - 2) & (uv[..., 1] >= 1) & (uv[..., 1] <= h - 2)).to(X.dtype)
     M = torch.eye(4, dtype=torch.float64)[None]
     for _ in range(14):  # from identity to 0.8 m: quadratic convergence sets in after ~9 steps
         Xt = gn.apply(M, X)
-        uvt, Jp, front = gn.project(Xt, K, scale)
+        uvt, front = gn.project(Xt, K, scale)
         gx, gy = gn.image_gradients(f2)
         s = gn.sample(torch.cat([f2, gx, gy], 1), uvt)
         r = (s[:, :2] - f1.reshape(1, 2, -1)).transpose(1, 2)
         G = torch.stack([s[:, 2:4], s[:, 4:6]], -1).transpose(1, 2)
-        J = G @ (Jp @ gn.point_jacobian(Xt))
+        J = G @ gn.pixel_jacobian(Xt, K, scale)
         H, gg = gn.normal_equations(J, r, valid * inside * front)
         M = gn.update(M, gn.damped_step(H, gg, 1e-4, max_rot=0.05, max_trans=1.0))
     err = gn.invert(true) @ M
