@@ -146,6 +146,23 @@ def normal_equations(J: torch.Tensor, r: torch.Tensor, w: torch.Tensor):
     return H, g
 
 
+def feature_normal_equations(Jp: torch.Tensor, r: torch.Tensor, gu: torch.Tensor, gv: torch.Tensor,
+                             w: torch.Tensor):
+    """H, g of sum_n w_n sum_c (r_cn + (gu_cn Ju_n + gv_cn Jv_n) xi)^2 without forming the
+    (N, C, 6) Jacobian: sum_c J^T J = Ju^T Ju S_uu + (Ju^T Jv + Jv^T Ju) S_uv + Jv^T Jv S_vv with
+    per-point channel sums S, and g = Ju S_ru + Jv S_rv. The same numbers as `normal_equations` on
+    the full Jacobian, C times less work and no batched 2x6 products (slow as graph ops).
+    Jp (B,N,2,6) pixel Jacobian; r, gu, gv (B,C,N) residual and feature gradients; w (B,N)."""
+    Ju, Jv = Jp[:, :, 0], Jp[:, :, 1]  # (B,N,6)
+    suu, suv, svv = ((gu * gu).sum(1) * w, (gu * gv).sum(1) * w, (gv * gv).sum(1) * w)
+    sru, srv = (r * gu).sum(1) * w, (r * gv).sum(1) * w
+    JuT, JvT = Ju.transpose(1, 2), Jv.transpose(1, 2)
+    cross = JuT @ (Jv * suv.unsqueeze(-1))
+    H = JuT @ (Ju * suu.unsqueeze(-1)) + cross + cross.transpose(1, 2) + JvT @ (Jv * svv.unsqueeze(-1))
+    g = (Ju * sru.unsqueeze(-1)).sum(1) + (Jv * srv.unsqueeze(-1)).sum(1)
+    return H, g
+
+
 def damped_step(H: torch.Tensor, g: torch.Tensor, damping: float, max_rot: float = 0.02,
                 max_trans: float = 0.3) -> torch.Tensor:
     """Levenberg-Marquardt step -inv(H + lambda diag(H) + floor I) g, scaled down (direction kept)

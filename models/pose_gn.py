@@ -81,11 +81,9 @@ class GaussNewtonPose(nn.Module):
             # must not switch its weight on or off (a jump in the solution that float rounding triggers)
             u, v = uv[..., 0], uv[..., 1]
             inside = torch.minimum(torch.minimum(u, w - 1 - u), torch.minimum(v, h - 1 - v)).clamp(0.0, 1.0)
-            r = (s[:, :c] - ref).transpose(1, 2)  # (B,N,C)
-            G = torch.stack([s[:, c:2 * c], s[:, 2 * c:]], -1).transpose(1, 2)  # (B,N,C,2)
-            J = G @ gn.pixel_jacobian(Xt, K, scale)  # (B,N,C,6)
-            wgt = weight * front * inside * gn.huber_weights((r * r).sum(-1) / c, self.cfg.gn_huber)
-            H, g = gn.normal_equations(J, r, wgt)
+            r, gu, gv = s[:, :c] - ref, s[:, c:2 * c], s[:, 2 * c:]  # (B,C,N) each
+            wgt = weight * front * inside * gn.huber_weights((r * r).sum(1) / c, self.cfg.gn_huber)
+            H, g = gn.feature_normal_equations(gn.pixel_jacobian(Xt, K, scale), r, gu, gv, wgt)
             M = gn.update(M, gn.damped_step(H, g, self.cfg.gn_damping))
         return M
 

@@ -37,7 +37,8 @@ resume() { [ "${RESUME:-0}" = 1 ] && [ -f "$1" ] && echo --resume "$1" || true; 
 # Side by side, as they were run for the bundled model (budgets differ because the runs were
 # started at different times of one session; the comparison favours the MLP head, which had more):
 # - the paper's MLP head, 1,600 steps validated every 400, then the rgb ablation (no depth, so
-#   the MLP head), 1,500 steps validated every 300, one thread each;
+#   the MLP head), 1,500 steps validated every 300, one thread each (the rgb run was stopped at
+#   step 1,050 to give the default's training both cores; its best validated step was 600);
 # - the default, the Gauss-Newton head with the solver on LiDAR cells, 1,000 steps validated
 #   every 250, two threads.
 ( export OMP_NUM_THREADS=1

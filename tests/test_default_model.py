@@ -66,4 +66,5 @@ def test_bundled_model_tracks_a_held_out_clip(tmp_path):
     print(f"bundled {t:.4f} m {r:.4f} deg; no motion {t_zero:.4f} m {r_zero:.4f} deg; "
           f"constant velocity {t_cv:.4f} m {r_cv:.4f} deg")
     assert t < 0.25 * min(t_zero, t_cv) and r < 0.25 * min(r_zero, r_cv)
-    assert t < T_BOUND and r < R_BOUND
+    # measured 0.0057 m, 0.041 deg; the model card's RPE on 10-motion is 0.011 m, 0.037 deg
+    assert t < 0.015 and r < 0.08

@@ -102,3 +102,16 @@ def test_trust_region_caps_the_step():
     assert float(xi[0, :3].norm()) <= 0.3 + 1e-12 and float(xi[0, 3:].norm()) <= 0.02 + 1e-12
     # the direction of the undamped Newton step is kept
     np.testing.assert_allclose((xi / xi.norm()).numpy(), (-g / g.norm()).numpy(), atol=1e-12)
+
+
+def test_feature_normal_equations_equal_the_full_jacobian():
+    g = torch.Generator().manual_seed(5)
+    b, c, n = 2, 3, 40
+    Jp = torch.randn(b, n, 2, 6, generator=g, dtype=torch.float64)
+    r, gu, gv = (torch.randn(b, c, n, generator=g, dtype=torch.float64) for _ in range(3))
+    w = torch.rand(b, n, generator=g, dtype=torch.float64)
+    G = torch.stack([gu, gv], -1).transpose(1, 2)  # (B,N,C,2)
+    H_ref, g_ref = gn.normal_equations(G @ Jp, r.transpose(1, 2), w)
+    H, gg = gn.feature_normal_equations(Jp, r, gu, gv, w)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gg, g_ref, rtol=1e-12, atol=1e-12)
