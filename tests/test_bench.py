@@ -75,8 +75,9 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
 
 
 def test_conv_bench_finds_every_conv_once():
-    """Each Conv2d of the network runs once per frame pair (complete, encode, flow_pose), so the
-    recorded calls add up to the model's Conv2d count, and the first RGB conv has its known shape."""
+    """Each Conv2d of the network runs once per frame pair (complete, encode, flow_pose), except the
+    Gauss-Newton head's feature projections, which run on both frames: the recorded calls add up
+    to the model's Conv2d count plus one per flow level, and the first RGB conv has its known shape."""
     import torch
 
     from export.conv_bench import ConvShape, conv_layers
@@ -86,7 +87,7 @@ def test_conv_bench_finds_every_conv_once():
     cfg = D3LVOConfig(height=64, width=128)
     layers = conv_layers(cfg)
     n_modules = sum(isinstance(m, torch.nn.Conv2d) for m in D3LVO(cfg).modules())
-    assert sum(layers.values()) == n_modules
+    assert sum(layers.values()) == n_modules + len(cfg.flow_levels)
     first_rgb = ConvShape(3, cfg.rgb_widths[0], 3, 2, 1, 1, 64, 128)
     assert layers[first_rgb] == 1
     assert first_rgb.gmac == 3 * cfg.rgb_widths[0] * 9 * 32 * 64 / 1e9

@@ -79,7 +79,7 @@ def test_ipbasic_fills_holes_and_keeps_near_points():
 
 
 def test_short_training_beats_the_baselines(turning_drives, tmp_path):
-    """60 steps on a 12-frame turning drive, scored on held-out pairs of another drive: the flow
+    """100 steps on a 12-frame turning drive, scored on held-out pairs of another drive: the flow
     beats predicting zero flow at every level, and improves on the untrained network; rotation and
     translation beat predicting no motion and the best constant (the training pairs' mean motion)
     by an order of magnitude. The pose comes from the Gauss-Newton step (geometry); what training
@@ -94,7 +94,7 @@ def test_short_training_beats_the_baselines(turning_drives, tmp_path):
     torch.manual_seed(0)
     before = pair_metrics(D3LVO(cfg), [str(held_dir)])
     ck = tmp_path / "ck.pt"
-    tc = TrainConfig(data=[str(train_dir)], out=str(ck), steps=60, batch_size=4, lr=2e-3, warmup=5, ckpt_every=60,
+    tc = TrainConfig(data=[str(train_dir)], out=str(ck), steps=100, batch_size=4, lr=2e-3, warmup=5, ckpt_every=100,
                      augment=AugmentConfig(flip=0.5, brightness=0.1, rotation_deg=0))
     train(cfg, tc)
     model = D3LVO(cfg)
