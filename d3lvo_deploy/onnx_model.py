@@ -105,6 +105,10 @@ class StageModel:
                 raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
             self._check_io(path, sess, st)
             self.sessions[name] = sess
+        # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
+        # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
+        self.encoder_takes_lidar = any(i.name == "sparse_invdepth" for i in self.sessions["encoder"].get_inputs())
+        self.geometric = any(i.name == "init_pose" for i in self.sessions["flowpose"].get_inputs())
 
     @staticmethod
     def _check_io(path: Path, sess: ort.InferenceSession, st: dict) -> None:
@@ -129,11 +133,6 @@ class StageModel:
         """Normalised RGB + sparse inverse depth -> dense inverse depth (see export.stages)."""
         return self.run("completion", {"rgb_norm": rgb_norm, "sparse_invdepth": sparse_inv})["dense_invdepth"]
 
-    @property
-    def encoder_takes_lidar(self) -> bool:
-        """Whether the encoder also takes the LiDAR returns (`sparse_invdepth`, for the solver)."""
-        return any(i.name == "sparse_invdepth" for i in self.sessions["encoder"].get_inputs())
-
     def encode(self, rgb_norm: np.ndarray, invdepth: np.ndarray | None,
                sparse_invdepth: np.ndarray | None = None) -> dict[str, np.ndarray]:
         feeds = {"rgb_norm": rgb_norm}
@@ -149,11 +148,6 @@ class StageModel:
         """Inverse depth (e.g. `complete`'s output) -> metres, 0 where there is none."""
         min_d = np.float32(self.config["min_depth"])
         return np.divide(min_d, invdepth, out=np.zeros_like(invdepth), where=invdepth > 0)
-
-    @property
-    def geometric(self) -> bool:
-        """Whether the flow+pose graph is the Gauss-Newton head (takes intrinsics and init_pose)."""
-        return any(i.name == "init_pose" for i in self.sessions["flowpose"].get_inputs())
 
     def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray],
                   camera: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
