@@ -44,26 +44,49 @@ def _default_network_checkpoint(tmp: Path, height: int, width: int) -> Path:
     return path
 
 
+def _stage_gflops(onnx: Path, manifest: dict) -> dict[str, float]:
+    """GFLOP per stage from the manifest (written by `d3lvo export`), else counted when onnx is here."""
+    out = {}
+    for name, st in manifest["stages"].items():
+        if "gflops" in st:
+            out[name] = float(st["gflops"])
+            continue
+        try:
+            from export.flops import graph_flops
+        except ImportError:
+            continue
+        out[name] = graph_flops(onnx / st["file"]) / 1e9
+    return out
+
+
 @friendly_errors
 def bench_command(
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
     ckpt: Path | None = typer.Option(None, "--ckpt", help="Or a checkpoint: exported to a temporary folder first."),
     height: int | None = typer.Option(None, "--height", help="Export --ckpt at this height; without --ckpt, time the default network (D3LVOConfig()) at this size."),
     width: int | None = typer.Option(None, "--width", help="... and this width (e.g. --height 352 --width 1216)."),
-    threads: int = typer.Option(2, "--threads", help="Threads for onnxruntime and torch."),
+    threads: int = typer.Option(2, "--threads", help="Threads for every engine and torch."),
     runs: int = typer.Option(20, "--runs", help="Timed frames after warm-up."),
     seq_dir: Path | None = typer.Option(None, "--seq-dir", help="Frames to run on (default: real frames, else synthetic)."),
+    backend: str | None = typer.Option(None, "--backend", help="Engines to time, comma-separated: onnxruntime, "
+                                       "openvino (default: every one installed)."),
+    ov_precision: str = typer.Option("f32", "--ov-precision", help="OpenVINO's inference precision: f32 | bf16."),
     torch_compare: bool = typer.Option(True, "--torch/--no-torch", help="Also time torch eager on the same stages."),
+    torch_compile: bool = typer.Option(False, "--torch-compile", help="Also time torch.compile (inductor); compiles "
+                                       "each stage first, about a minute on 2 cores."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
     profile: Path | None = typer.Option(None, "--profile", help="Write onnxruntime profiles here and list the top ops."),
     precision: str = typer.Option("fp32", "--precision", help="With --ckpt or --height/--width: export at fp32 | fp16 | "
                                   "int8 first (INT8 calibrated as `d3lvo export` does). Torch stays FP32."),
 ) -> None:
-    """Median/p90/min latency per stage, frames/s, peak RSS, and the ORT speed-up over torch eager."""
-    from d3lvo_deploy.bench import BENCH_STAGES, bench_onnx, peak_rss_mb
+    """Per stage and engine: median/p90/max latency, GFLOP/s against this CPU's GEMM peak, frames/s,
+    peak RSS, and the speed-up over torch eager (and torch.compile); the CPU and its vector
+    extensions head the output, so a figure is never quoted without its machine."""
+    from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
+    from d3lvo_deploy.bench import bench_onnx, peak_rss_mb
     from d3lvo_deploy.bundled import find_real_frames
+    from d3lvo_deploy.cpu import cpu_info, gemm_peak_gflops
     from d3lvo_deploy.manifest import load_manifest
-    from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.sequence import KittiSequence
 
     if runs < 1:
@@ -80,14 +103,26 @@ def bench_command(
     default_network = ckpt is None and onnx is None and height is not None
     if precision != "fp32" and ckpt is None and not default_network:
         raise D3LVOInputError(None, "--precision needs --ckpt or --height/--width (the bundled model is fp32)")
-    if ckpt is not None or default_network:
+    engines = available_backends() if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
+    for b in engines:
+        if b not in BACKENDS:
+            raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {b!r}")
+        SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32").check()
+    if "openvino" in engines:
         from d3lvo_deploy.extras import require
 
-        require("torch", "onnx", what="d3lvo bench with --ckpt or --height/--width (it exports first)")
+        require("openvino", what="--backend openvino")
+    if profile is not None and "onnxruntime" not in engines:
+        raise D3LVOInputError(profile, "--profile writes onnxruntime profiles: include --backend onnxruntime")
+    if ckpt is not None or default_network or torch_compile:
+        from d3lvo_deploy.extras import require
+
+        require("torch", "onnx", what="d3lvo bench with --ckpt, --height/--width or --torch-compile")
     if seq_dir is None and find_real_frames() is None:
         from d3lvo_deploy.extras import require
 
         require("embreex", what="d3lvo bench without --seq-dir or ../shared/data (it renders frames)")
+    cpu = cpu_info()
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
         if default_network:
@@ -112,65 +147,120 @@ def bench_command(
 
             onnx = bundled_model_dir()
         manifest = load_manifest(onnx)
+        gflops = _stage_gflops(onnx, manifest)
         seq = KittiSequence.open(seq_dir or _bench_frames(tmp))
-        sc = SessionConfig(threads=threads, profile_dir=str(profile) if profile else None)
-        with console.status(f"timing onnxruntime ({runs} frames)"):
-            ort_t = bench_onnx(onnx, seq, sc, runs).summary()
+        with console.status("measuring the GEMM peak"):
+            peak = gemm_peak_gflops()
+        timed: dict[str, dict] = {}
         top_ops = None
+        for b in engines:
+            sc = SessionConfig(threads=threads, backend=b, ov_precision=ov_precision if b == "openvino" else "f32",
+                               profile_dir=str(profile) if profile and b == "onnxruntime" else None)
+            with console.status(f"timing {b} ({runs} frames)"):
+                timed[b] = bench_onnx(onnx, seq, sc, runs).summary()
         if profile is not None:
             from d3lvo_deploy.bench import profile_summary
 
             top_ops = profile_summary(sorted(str(p) for p in profile.glob("*.json")))
         rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
-        torch_t = None
-        if torch_compare:
+        torch_t = compiled_t = None
+        if torch_compare or torch_compile:
             try:
                 from models.bench_torch import bench_torch
                 from models.config import D3LVOConfig
             except ImportError:
                 console.print("torch is not installed: no torch comparison", highlight=False)
             else:
-                with console.status(f"timing torch eager ({runs} frames)"):
-                    torch_t = bench_torch(D3LVOConfig.from_dict(manifest["model_config"]), seq, threads, runs).summary()
+                cfg = D3LVOConfig.from_dict(manifest["model_config"])
+                if torch_compare:
+                    with console.status(f"timing torch eager ({runs} frames)"):
+                        torch_t = bench_torch(cfg, seq, threads, runs).summary()
+                if torch_compile:
+                    with console.status(f"compiling with torch.compile, then timing it ({runs} frames)"):
+                        compiled_t = bench_torch(cfg, seq, threads, runs, compile=True).summary()
+    net = ("completion", "encoder", "flowpose")
+    network_ms = lambda t: sum(t[k]["median"] for k in net if k in t)  # noqa: E731
+    best = min(timed, key=lambda b: timed[b]["total"]["median"])
+    first = "onnxruntime" if "onnxruntime" in timed else best
     res = {
         "model": str(onnx), "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
         "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
         "threads": threads, "runs": runs, "frames_from": str(seq.root),
-        "stages_ms": ort_t, "total_ms_median": ort_t["total"]["median"],
-        "fps": 1000.0 / ort_t["total"]["median"], "rss_mb": rss,
+        "cpu": {"model": cpu.model, "cores": cpu.logical_cores, "isa": list(cpu.isa)},
+        "gemm_peak_gflops": peak, "stage_gflops": gflops,
+        "backends": {b: {"stages_ms": t, "total_ms_median": t["total"]["median"], "total_ms_max": t["total"]["max"],
+                         "fps": 1000.0 / t["total"]["median"]} for b, t in timed.items()},
+        "best_backend": best,
+        # the first engine's figures under the keys earlier versions printed
+        "stages_ms": timed[first], "total_ms_median": timed[first]["total"]["median"],
+        "fps": 1000.0 / timed[first]["total"]["median"], "rss_mb": rss,
     }
     if torch_t is not None:
-        net = ("completion", "encoder", "flowpose")
-        t_ort = sum(ort_t[k]["median"] for k in net if k in ort_t)
-        t_torch = sum(torch_t[k]["median"] for k in net if k in torch_t)
         res["torch_stages_ms"] = torch_t
-        res["ort_over_torch"] = t_torch / t_ort  # speed-up of ORT over torch eager on the network stages
+        res["ort_over_torch"] = network_ms(torch_t) / network_ms(timed[first])  # above 1: the engine is faster
+        res["best_over_torch"] = network_ms(torch_t) / network_ms(timed[best])
+    if compiled_t is not None:
+        res["torch_compile_stages_ms"] = compiled_t
+        res["best_over_torch_compile"] = network_ms(compiled_t) / network_ms(timed[best])
     if top_ops is not None:
         res["top_ops_ms"] = top_ops
     if as_json:
         typer.echo(json.dumps(res, indent=2))
         return
-    t = Table(title=f"d3lvo bench: {res['size']}, {threads} threads, {runs} frames ({res['precision']})")
-    for c in ("stage", "ORT median", "p90", "min", "max") + (("torch median", "speed-up") if torch_t else ()):
-        t.add_column(c, justify="right")
+    _print_report(res, timed, torch_t, compiled_t, top_ops)
+
+
+def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict | None, top_ops) -> None:
+    from d3lvo_deploy.bench import BENCH_STAGES
+
+    cpu = res["cpu"]
+    out.print(f"CPU: {cpu['model']}, {cpu['cores']} cores, {' '.join(cpu['isa']) or 'no AVX2'}; "
+              f"numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
+    t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}), "
+                    "ms per frame")
+    t.add_column("stage", justify="right")
+    t.add_column("GFLOP", justify="right")
+    for b in timed:
+        for q in ("median", "p90", "max"):
+            t.add_column(f"{b} {q}" if q == "median" else q, justify="right")
+    if torch_t:
+        t.add_column("torch eager", justify="right")
+    if compiled_t:
+        t.add_column("torch.compile", justify="right")
+    t.add_column(f"{res['best_backend']} GFLOP/s (% peak)", justify="right")
+    gf = res["stage_gflops"]
     for k in BENCH_STAGES:
-        if k not in ort_t:
+        if not any(k in tb for tb in timed.values()):
             continue
-        row = [k] + [f"{ort_t[k][q]:.1f}" for q in ("median", "p90", "min", "max")]
-        if torch_t:
-            # torch times the network stages only: no projection, so its total is not comparable
-            tm = torch_t.get(k, {}).get("median") if k not in ("project", "total") else None
-            row += ["" if tm is None else f"{tm:.1f}", "" if tm is None else f"{tm / max(ort_t[k]['median'], 1e-9):.2f}x"]
+        flops = sum(gf.values()) if k == "total" and gf else gf.get(k)
+        row = [k, "" if flops is None else f"{flops:.2f}"]
+        for tb in timed.values():
+            row += [f"{tb[k][q]:.1f}" if k in tb else "" for q in ("median", "p90", "max")]
+        for tt in (torch_t, compiled_t):
+            if tt:
+                # torch times the network stages only: no projection, so its total is not comparable
+                row.append(f"{tt[k]['median']:.1f}" if k in tt and k not in ("project", "total") else "")
+        ms = timed[res["best_backend"]].get(k, {}).get("median")
+        if flops and ms and k != "project":
+            rate = flops / (ms / 1000.0)
+            row.append(f"{rate:.0f} ({100 * rate / res['gemm_peak_gflops']:.0f} %)")
+        else:
+            row.append("")
         t.add_row(*row)
     out.print(t)
-    budget = "within" if res["total_ms_median"] <= 100.0 else "over"
-    slowest = ort_t["total"]["max"]
-    msg = (f"{res['fps']:.1f} frames/s end to end (incl. projection), {budget} the 10 Hz budget of 100 ms "
-           f"(slowest frame {slowest:.1f} ms{'' if slowest <= 100.0 else ', over budget'}); "
-           f"peak RSS {rss:.0f} MB")
+    for b, tb in timed.items():
+        med, slowest = tb["total"]["median"], tb["total"]["max"]
+        out.print(f"{b}: {1000.0 / med:.1f} frames/s end to end (incl. projection), median {med:.1f} ms "
+                  f"{'within' if med <= 100.0 else 'over'} the 10 Hz budget of 100 ms, slowest frame {slowest:.1f} ms",
+                  highlight=False)
+    msg = f"peak RSS {res['rss_mb']:.0f} MB"
     if torch_t:
-        msg += f"; network stages: ORT/torch speed-up {res['ort_over_torch']:.2f}x (above 1: ORT faster)"
-    out.print(msg, highlight=False)
+        msg += (f"; network stages: {res['best_backend']} {res['best_over_torch']:.2f}x torch eager"
+                + (f", onnxruntime {res['ort_over_torch']:.2f}x" if res['best_backend'] != "onnxruntime"
+                   and "onnxruntime" in timed else ""))
+    if compiled_t:
+        msg += f", {res['best_over_torch_compile']:.2f}x torch.compile"
+    out.print(msg + (" (above 1: faster)" if torch_t or compiled_t else ""), highlight=False)
     if top_ops:
         for stage, ops in top_ops.items():
             out.print(f"  {stage}: " + ", ".join(f"{op} {ms:.0f} ms" for op, ms in ops[:6]), highlight=False)

@@ -19,18 +19,25 @@ def parity_command(
                                         "in ../shared/data, else a synthetic sequence)."),
     frames: int = typer.Option(3, "--frames", help="Frames to run (pairs = frames - 1)."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers and a pass flag as JSON."),
+    backend: str = typer.Option("onnxruntime", "--backend", help="Engine to check: onnxruntime | openvino."),
+    ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 is "
+                                     "reported, not expected to meet the fp32 tolerances)."),
 ) -> None:
-    """Compare torch and onnxruntime per stage output and along the chained pipeline; exit 1 on failure."""
+    """Compare torch and the engine per stage output, along the chained pipeline, and against
+    D3LVO.forward on each pair; exit 1 on failure."""
+    from d3lvo_deploy.backends import SessionConfig
     from d3lvo_deploy.extras import require
 
     require("torch", "onnx", what="d3lvo parity")
     from export.parity import POSE_R_TOL, POSE_T_TOL, STAGE_TOL, run_parity
 
-    rep = run_parity(ckpt, onnx, seq_dir, frames)
+    sc = SessionConfig(backend=backend, ov_precision=ov_precision)
+    sc.check()
+    rep = run_parity(ckpt, onnx, seq_dir, frames, sc)
     if as_json:
-        typer.echo(json.dumps(rep.to_dict(), indent=2))
+        typer.echo(json.dumps({**rep.to_dict(), "backend": backend}, indent=2))
     else:
-        t = Table(title=f"torch vs onnxruntime on {rep.frames} frames of {rep.data}")
+        t = Table(title=f"torch vs {backend} on {rep.frames} frames of {rep.data}")
         for c in ("stage", "output", "max abs", "max rel", f"ok (<= {STAGE_TOL:g} x max(1,|ref|))"):
             t.add_column(c)
         for stage, outs in rep.stages.items():
@@ -39,6 +46,8 @@ def parity_command(
         out.print(t)
         out.print(f"chained relative pose: {rep.chained_t_m:.2e} m (<= {POSE_T_TOL:g}), "
                   f"{rep.chained_r_deg:.2e} deg (<= {POSE_R_TOL:g})", highlight=False)
+        out.print(f"against D3LVO.forward on each pair: {rep.reference_t_m:.2e} m, {rep.reference_r_deg:.2e} deg "
+                  f"(largest motion compared: {rep.motion_t_m:.3f} m, {rep.motion_r_deg:.3f} deg)", highlight=False)
         out.print("[bold green]PASS[/]" if rep.passed else "[bold red]FAIL[/]")
     if not rep.passed:
         raise typer.Exit(1)

@@ -6,6 +6,7 @@ import warnings
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from d3lvo_deploy.errors import D3LVOInputError
@@ -59,7 +60,11 @@ def run_command(
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
-    threads: int = typer.Option(0, "--threads", help="onnxruntime intra-op threads (0: all cores)."),
+    threads: int = typer.Option(0, "--threads", help="Inference threads (0: all cores)."),
+    backend: str = typer.Option("onnxruntime", "--backend", help="onnxruntime | openvino (the [openvino] extra; "
+                                "`d3lvo bench` says which is faster on this CPU)."),
+    ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 uses "
+                                     "the CPU's AVX512_BF16/AMX paths; see the README's precision table)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by times.txt, like a live 10 Hz sensor."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
@@ -67,7 +72,7 @@ def run_command(
 ) -> None:
     """Estimate the trajectory of a sequence with the ONNX stages (no torch needed)."""
     from d3lvo_deploy.onnx_model import SessionConfig
-    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
     from d3lvo_deploy.sequence import KittiSequence
 
     if method not in ("d3lvo", "direct"):
@@ -92,7 +97,9 @@ def run_command(
         seq = KittiSequence.open(seq_dir, gt=gt)
     if gt is not None and kitti_root is not None:
         seq = KittiSequence.open(seq.root, gt=gt)
-    sc = SessionConfig(provider=provider, threads=threads, optimization=optimization)
+    sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
+                       ov_precision=ov_precision)
+    sc.check()
     odometry = None
     if method == "direct":
         from d3lvo_deploy.direct import DirectOdometry
@@ -104,31 +111,46 @@ def run_command(
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
     rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime,
                    viz_dir=viz, viz_every=viz_every)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        # every argument, the output file and the model are checked before the progress bar
+        with console.status("loading the model"):
+            plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
+    _print_warnings(caught)
+    if plan.finished:
+        console.print(f"{out_path} already holds all {plan.n} poses of frames {plan.rc.start}..{plan.rc.end - 1}: "
+                      "nothing to run (--overwrite starts over)", highlight=False)
+        _score(seq, out_path, plan.rc.fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
+        return
+    if plan.done.shape[0]:
+        console.print(f"resuming after {len(plan.done)} poses already in {out_path}", highlight=False)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
         warnings.simplefilter("always")
-        task = bar.add_task("run", total=(end or len(seq)) - start, rate="")
+        task = bar.add_task("run", total=plan.n, rate="")
 
         def tick(done: int, total: int, ms: float) -> None:
             bar.update(task, completed=done, total=total, rate=f"{1000.0 / max(ms, 1e-6):.1f} frames/s")
 
         try:
-            summary = run_sequence(seq, model_dir, rc, sc, progress=tick, odometry=odometry)
+            summary = execute_run(plan, progress=tick)
         except KeyboardInterrupt:
             bar.stop()
             console.print(f"[yellow]interrupted[/]: the poses so far are in {out_path}; the same command with "
                           "--resume continues from there", highlight=False)
             raise typer.Exit(130) from None
+    _print_warnings(caught)
+    out.print(latency_table(summary.stats()))
+    out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, cam0, first pose identity)", highlight=False)
+    _score(seq, out_path, plan.rc.fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
+
+
+def _print_warnings(caught) -> None:
     seen = set()
     for w in caught:
         msg = str(w.message)
         if msg not in seen:
             seen.add(msg)
-            console.print(f"[yellow]warning[/] {msg}", highlight=False)
-    if summary.resumed_from:
-        console.print(f"resumed after {summary.resumed_from} poses already in {out_path}", highlight=False)
-    out.print(latency_table(summary.stats()))
-    out.print(f"{summary.frames} poses in {out_path} ({fmt}, cam0, first pose identity)", highlight=False)
-    _score(seq, out_path, fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
+            console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
 
 
 def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap) -> None:

@@ -11,7 +11,8 @@ import importlib
 
 from .errors import D3LVOInputError
 
-EXTRAS = {"torch": "train", "onnx": "train", "embreex": "synth", "matplotlib": "plot", "ray": "ray"}
+EXTRAS = {"torch": "train", "onnx": "train", "embreex": "synth", "matplotlib": "plot", "ray": "ray",
+          "openvino": "openvino"}
 
 
 def require(*modules: str, what: str) -> None:

@@ -30,6 +30,14 @@ def sha256_file(path: Path) -> str:
 def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
     model_dir = Path(model_dir)
     path = model_dir / "manifest.json"
+    if model_dir.is_file():
+        if model_dir.suffix in (".pt", ".pth"):
+            raise D3LVOInputError(model_dir, "is a PyTorch checkpoint; the runtime reads an exported folder: "
+                                             f"d3lvo export --ckpt {model_dir} --out DIR, then pass DIR")
+        if model_dir.suffix == ".onnx":
+            raise D3LVOInputError(model_dir, "is one ONNX file; pass the folder written by `d3lvo export` "
+                                             "(its manifest.json lists the three stages)")
+        raise D3LVOInputError(model_dir, "is a file; pass the folder written by `d3lvo export`")
     if not path.is_file():
         raise D3LVOInputError(model_dir, "no manifest.json: not a folder written by `d3lvo export`")
     try:

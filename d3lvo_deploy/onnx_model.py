@@ -1,4 +1,4 @@
-"""The exported stages behind onnxruntime sessions, checked against manifest.json.
+"""The exported stages behind onnxruntime (or OpenVINO) sessions, checked against manifest.json.
 
 Arrays in and out are numpy float32 NCHW: normalised RGB and inverse depth, as
 d3lvo_deploy.frames.FramePreprocessor makes them (`dense_depth_m` converts to metres). `encode`
@@ -9,14 +9,13 @@ returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1'
 
 from __future__ import annotations
 
-import os
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
+from .backends import OpenVinoSession, OrtSession, SessionConfig, open_session
 from .errors import D3LVOInputError
 from .manifest import load_manifest
 
@@ -27,17 +26,6 @@ OPT_LEVELS = {
     "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
     "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
 }
-
-
-@dataclass(frozen=True)
-class SessionConfig:
-    provider: str = "cpu"
-    threads: int = 0  # 0: onnxruntime decides (all physical cores)
-    optimization: str = "all"
-    profile_dir: str | None = None
-    # ORT's pool threads busy-wait after each run by default; between stages the pipeline does
-    # numpy work (projection) on the same 2 cores, which spinning threads would slow down.
-    spinning: bool = False
 
 
 def resolve_providers(name: str) -> list[str]:
@@ -82,39 +70,24 @@ class StageModel:
         self.depth_input = self.manifest["depth_input"]
         self.height = self.manifest["input"]["height"]
         self.width = self.manifest["input"]["width"]
-        providers = resolve_providers(sc.provider)
-        if sc.optimization not in OPT_LEVELS:
-            raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
-        self.sessions: dict[str, ort.InferenceSession] = {}
+        sc.check()
+        self.backend = sc.backend
+        self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
         for name, st in self.manifest["stages"].items():
-            so = ort.SessionOptions()
-            so.graph_optimization_level = OPT_LEVELS[sc.optimization]
-            so.intra_op_num_threads = sc.threads
-            so.inter_op_num_threads = 1
-            so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-            so.log_severity_level = 3  # errors only: optimiser notes (e.g. fp16 constant folding) are not user news
-            so.add_session_config_entry("session.intra_op.allow_spinning", "1" if sc.spinning else "0")
-            if sc.profile_dir:
-                os.makedirs(sc.profile_dir, exist_ok=True)
-                so.enable_profiling = True
-                so.profile_file_prefix = str(Path(sc.profile_dir) / name)
             path = self.dir / st["file"]
-            try:
-                sess = ort.InferenceSession(str(path), so, providers=providers)
-            except Exception as e:  # onnxruntime raises its own exception types
-                raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+            sess = open_session(path, sc, name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
-        self.encoder_takes_lidar = any(i.name == "sparse_invdepth" for i in self.sessions["encoder"].get_inputs())
-        self.geometric = any(i.name == "init_pose" for i in self.sessions["flowpose"].get_inputs())
+        self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
+        self.geometric = "init_pose" in self.input_names("flowpose")
 
     @staticmethod
-    def _check_io(path: Path, sess: ort.InferenceSession, st: dict) -> None:
-        got_in = [(i.name, list(i.shape)) for i in sess.get_inputs()]
+    def _check_io(path: Path, sess, st: dict) -> None:
+        got_in = sess.inputs
         want_in = [(i["name"], i["shape"]) for i in st["inputs"]]
-        got_out = [o.name for o in sess.get_outputs()]
+        got_out = sess.outputs
         want_out = [o["name"] for o in st["outputs"]]
         norm = lambda s: [d if isinstance(d, int) else "?" for d in s]  # noqa: E731
         if [n for n, _ in got_in] != [n for n, _ in want_in] or got_out != want_out:
@@ -123,10 +96,13 @@ class StageModel:
             raise D3LVOInputError(path, "input shapes differ from manifest.json")
 
     def output_names(self, stage: str) -> list[str]:
-        return [o.name for o in self.sessions[stage].get_outputs()]
+        return self.sessions[stage].outputs
+
+    def input_names(self, stage: str) -> list[str]:
+        return [n for n, _ in self.sessions[stage].inputs]
 
     def run(self, stage: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        outs = self.sessions[stage].run(None, feeds)
+        outs = self.sessions[stage].run(feeds)
         return dict(zip(self.output_names(stage), outs))
 
     def complete(self, rgb_norm: np.ndarray, sparse_inv: np.ndarray) -> np.ndarray:
@@ -152,8 +128,7 @@ class StageModel:
     def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray],
                   camera: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         """`camera`: `camera_inputs(K, init)`, for the Gauss-Newton head."""
-        names = [i.name for i in self.sessions["flowpose"].get_inputs()]
-        return self.run("flowpose", flowpose_feeds(names, prev, cur, camera))
+        return self.run("flowpose", flowpose_feeds(self.input_names("flowpose"), prev, cur, camera))
 
     def end_profiling(self) -> list[str]:
         return [s.end_profiling() for s in self.sessions.values()]

@@ -9,7 +9,7 @@ digits, which read back to the same float64).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -96,31 +96,62 @@ def _write_viz(path: Path, odo) -> None:
         raise D3LVOInputError(path, f"cannot write the picture ({e})") from None
 
 
+@dataclass
+class RunPlan:
+    """A checked run: arguments valid, model loaded, poses already written read back."""
+    seq: KittiSequence
+    rc: RunConfig
+    odo: object
+    out: Path
+    n: int
+    done: np.ndarray
+
+    @property
+    def finished(self) -> bool:
+        return len(self.done) == self.n
+
+
+def prepare_run(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
+                model: StageModel | None = None, odometry=None) -> RunPlan:
+    """Every check that can fail before the first frame (range, format, output file, model), so
+    a bad argument is one error before any work or progress bar."""
+    end = len(seq) if rc.end is None else rc.end
+    if not 0 <= rc.start < end <= len(seq):
+        raise D3LVOInputError(seq.root, f"frame range {rc.start}..{end} is outside 0..{len(seq)}")
+    fmt = rc.fmt.lower()
+    if fmt not in ("kitti", "tum"):
+        raise D3LVOInputError(None, f"--format must be kitti or tum, not {rc.fmt!r}")
+    rc = replace(rc, fmt=fmt, end=end)
+    out = Path(rc.out)
+    if out.is_dir():
+        raise D3LVOInputError(out, "is a folder; --out names the trajectory file to write (e.g. 09.txt)")
+    if not rc.resume and not rc.overwrite and out.is_file() and out.stat().st_size > 0:
+        held = out.read_text().count("\n")
+        raise D3LVOInputError(out, f"already holds {held} poses from an earlier run; --resume continues it, "
+                                   "--overwrite starts over")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
+    n = end - rc.start
+    done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
+    odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
+    return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done)
+
+
 def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
                  progress: Callable[[int, int, float], None] | None = None, model: StageModel | None = None,
                  odometry=None) -> RunSummary:
     """Estimate poses for frames [start, end) and write them to rc.out; returns timings.
     `odometry`: another tracker with Odometry's interface (the direct reference tracker)."""
-    end = len(seq) if rc.end is None else rc.end
-    if not 0 <= rc.start < end <= len(seq):
-        raise D3LVOInputError(seq.root, f"frame range {rc.start}..{end} is outside 0..{len(seq)}")
-    if rc.fmt not in ("kitti", "tum"):
-        raise D3LVOInputError(None, f"--format must be kitti or tum, not {rc.fmt!r}")
-    n = end - rc.start
-    out = Path(rc.out)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
-    odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
-    if not rc.resume and not rc.overwrite and out.is_file() and out.stat().st_size > 0:
-        held = out.read_text().count("\n")
-        raise D3LVOInputError(out, f"already holds {held} poses from an earlier run; --resume continues it, "
-                                   "--overwrite starts over")
-    done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
+    return execute_run(prepare_run(seq, model_dir, rc, sc, model=model, odometry=odometry), progress)
+
+
+def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | None = None) -> RunSummary:
+    seq, rc, odo, out, n, done = plan.seq, plan.rc, plan.odo, plan.out, plan.n, plan.done
     summary = RunSummary(frames=n, out=out, resumed_from=len(done))
     summary.latencies_ms = {k: [] for k in (*STAGES, "total")}
-    if len(done) == n:
+    if plan.finished:
         return summary
     mode = "a" if len(done) else "w"
     try:

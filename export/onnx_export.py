@@ -26,6 +26,7 @@ from models.d3lvo import D3LVO
 from models.layers import inverse_depth
 from models.pose_gn import nominal_intrinsics
 
+from .flops import graph_flops
 from .stages import CompletionStage, EncoderStage, FlowPoseStage
 
 DEFAULT_OPSET = 17  # GridSample needs 16+
@@ -175,7 +176,8 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         onnx.save(m, str(path))
         m = check_graph(path)
         ins, outs = _io_spec(m)
-        manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs}
+        manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs,
+                                 "gflops": round(graph_flops(path) / 1e9, 4)}
         if progress is not None:
             progress(name)
 

@@ -46,7 +46,7 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
             feeds["encoder"].append(enc_in)
             enc = model.run("encoder", enc_in)
             if prev is not None:
-                names = [inp.name for inp in model.sessions["flowpose"].get_inputs()]
+                names = model.input_names("flowpose")
                 feeds["flowpose"].append(flowpose_feeds(names, prev, enc, camera))
             prev = enc
     return feeds

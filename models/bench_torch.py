@@ -16,12 +16,18 @@ from .d3lvo import D3LVO
 
 
 @torch.no_grad()
-def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, warmup: int = 2) -> StageTimes:
+def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, warmup: int = 2,
+                compile: bool = False) -> StageTimes:
     """Each frame is preprocessed from its image and scan inside the loop, as the ONNX pipeline
-    does, so both sides' stage times are taken under the same conditions (caches, idle cores)."""
+    does, so both sides' stage times are taken under the same conditions (caches, idle cores).
+    `compile`: the three stages through torch.compile (inductor), compiled during the warm-up."""
     if threads > 0:
         torch.set_num_threads(threads)
     model = D3LVO(cfg).eval()
+    complete, encode, flow_pose = model.complete_inverse, model.encode_inverse, model.flow_pose
+    if compile:
+        complete, encode, flow_pose = (torch.compile(f) for f in (complete, encode, flow_pose))
+        warmup = max(warmup, 3)  # the first calls compile; the second pair is the first steady one
     h, w = seq.image(0).shape[:2]
     pre = FramePreprocessor.for_model(seq.calib, w, h, cfg.to_dict(), cfg.depth_input)
     raw = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
@@ -36,10 +42,10 @@ def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, w
         ms: dict[str, float] = {}
         box: dict = {}
         # the deployed forms (normalised RGB, inverse depth), as the ONNX stages get them
-        ms["completion"] = timed(lambda: box.__setitem__("d", model.complete_inverse(rgb, inv) if inv is not None else None))
-        ms["encoder"] = timed(lambda: box.__setitem__("e", (*model.encode_inverse(rgb, box["d"]), model.lidar_levels(inv))))
+        ms["completion"] = timed(lambda: box.__setitem__("d", complete(rgb, inv) if inv is not None else None))
+        ms["encoder"] = timed(lambda: box.__setitem__("e", (*encode(rgb, box["d"]), model.lidar_levels(inv))))
         cur = box["e"]
-        ms["flowpose"] = timed(lambda: model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, None, prev[3])) \
+        ms["flowpose"] = timed(lambda: flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, None, prev[3])) \
             if prev is not None else 0.0
         prev = cur
         if k >= warmup:

@@ -30,6 +30,10 @@ def save_checkpoint(path: str | Path, model, cfg: D3LVOConfig, **state) -> None:
 def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None) -> dict:
     """Read and validate; with `expect`, refuse a checkpoint made with another config."""
     path = Path(path)
+    if path.is_dir():
+        hint = (" (an exported ONNX folder; --ckpt takes the .pt checkpoint it was exported from)"
+                if (path / "manifest.json").is_file() else "")
+        raise D3LVOInputError(path, f"is a folder, not a checkpoint file{hint}")
     if not path.is_file():
         raise D3LVOInputError(path, "checkpoint not found")
     try:

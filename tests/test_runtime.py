@@ -34,8 +34,9 @@ def test_onnx_trajectory_equals_torch(small_model, small_synth, tmp_path):
     est = read_poses(tmp_path / "p.txt").poses
     assert est.shape == torch_traj.shape == (6, 4, 4)
     np.testing.assert_allclose(est[0], np.eye(4))
-    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
-    np.testing.assert_allclose(est[:, :3, :3], torch_traj[:, :3, :3], atol=1e-5)
+    assert np.linalg.norm(torch_traj[-1, :3, 3]) > 1.0  # the clip moves far beyond the tolerance
+    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-5)
+    np.testing.assert_allclose(est[:, :3, :3], torch_traj[:, :3, :3], atol=1e-6)
 
 
 def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
@@ -189,6 +190,38 @@ def test_rerun_never_discards_saved_poses(small_model, small_synth, tmp_path):
     assert out.read_text() == saved
     r = runner.invoke(app, args[:-2] + ["--overwrite"])
     assert r.exit_code == 0 and len(out.read_text().splitlines()) == 6
+
+
+def test_run_checks_arguments_before_any_work(small_model, small_synth, tmp_path):
+    """A bad argument is one error before the progress bar draws, and nothing is written."""
+    import re
+
+    ck, onnx_dir = small_model
+    p = str(tmp_path / "p.txt")
+    cases = [(["--out", str(tmp_path)], "is a folder"),
+             (["--out", p, "--format", "xyz"], "--format must be kitti or tum"),
+             (["--out", p, "--onnx", str(ck)], "d3lvo export --ckpt"),
+             (["--out", p, "--onnx", str(onnx_dir / "encoder.onnx")], "one ONNX file"),
+             (["--out", p, "--backend", "tvm"], "--backend must be one of")]
+    for extra, words in cases:
+        args = ["run", "--seq-dir", str(small_synth)] + (["--onnx", str(onnx_dir)] if "--onnx" not in extra else [])
+        r = runner.invoke(app, args + extra)
+        assert r.exit_code == 1 and words in r.output, (extra, r.output)
+        assert not re.search(r"\s0/\d+\s", r.output), r.output  # no "0/6" of a progress bar
+        assert not (tmp_path / "p.txt").exists()
+
+
+def test_format_is_case_insensitive_and_a_finished_file_says_so(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    args = ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "p.tum"),
+            "--format", "TUM"]
+    assert runner.invoke(app, args).exit_code == 0
+    assert len(read_poses(tmp_path / "p.tum", fmt="tum")) == len(KittiSequence.open(small_synth))
+    saved = (tmp_path / "p.tum").read_text()
+    r = runner.invoke(app, args + ["--resume"])
+    assert r.exit_code == 0 and "already holds all 6 poses" in r.output and "nothing to run" in r.output
+    assert "latency per frame" not in r.output  # no empty table
+    assert (tmp_path / "p.tum").read_text() == saved
 
 
 def test_demo_writes_outside_the_checkout():

@@ -1,0 +1,149 @@
+"""Inference engines behind one small session interface: onnxruntime (the default, always
+installed) and OpenVINO (the `[openvino]` extra), both reading the same exported `.onnx` files.
+
+Why two: on 2-core CPUs OpenVINO's CPU plugin runs the flow+pose graph (gathers, grid samples,
+the unrolled solver) markedly faster than onnxruntime, while onnxruntime is on par or faster on
+the convolution stages; `d3lvo bench` times both in one sitting so the choice is measured on
+the machine at hand.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import D3LVOInputError
+
+BACKENDS = ("onnxruntime", "openvino")
+# OpenVINO's CPU inference precision: f32 is exact to onnxruntime's; bf16 uses the CPU's
+# AVX512_BF16 / AMX fast paths where it has them (see the README's precision table).
+OV_PRECISIONS = ("f32", "bf16")
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    provider: str = "cpu"
+    threads: int = 0  # 0: the engine decides (all physical cores)
+    optimization: str = "all"
+    profile_dir: str | None = None
+    # ORT's pool threads busy-wait after each run by default; between stages the pipeline does
+    # numpy work (projection) on the same 2 cores, which spinning threads would slow down.
+    spinning: bool = False
+    backend: str = "onnxruntime"
+    ov_precision: str = "f32"
+
+    def check(self) -> None:
+        if self.backend not in BACKENDS:
+            raise D3LVOInputError(None, f"--backend must be one of {', '.join(BACKENDS)}, not {self.backend!r}")
+        if self.ov_precision not in OV_PRECISIONS:
+            raise D3LVOInputError(None, f"--ov-precision must be one of {', '.join(OV_PRECISIONS)}, "
+                                        f"not {self.ov_precision!r}")
+        if self.backend == "openvino":
+            if self.provider != "cpu":
+                raise D3LVOInputError(None, "--provider is onnxruntime's; the openvino backend runs on the CPU")
+            if self.profile_dir:
+                raise D3LVOInputError(None, "--profile writes onnxruntime profiles; use --backend onnxruntime")
+        elif self.ov_precision != "f32":
+            raise D3LVOInputError(None, "--ov-precision applies to --backend openvino only")
+
+
+def available_backends() -> list[str]:
+    """Installed engines, in BACKENDS order."""
+    out = ["onnxruntime"]
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        out.append("openvino")
+    return out
+
+
+class OrtSession:
+    """One onnxruntime InferenceSession; inputs/outputs as (name, shape) and names."""
+
+    def __init__(self, path: Path, sc: SessionConfig, stage: str, expected: dict | None = None):
+        import onnxruntime as ort
+
+        from .onnx_model import OPT_LEVELS, resolve_providers
+
+        if sc.optimization not in OPT_LEVELS:
+            raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
+        so = ort.SessionOptions()
+        so.graph_optimization_level = OPT_LEVELS[sc.optimization]
+        so.intra_op_num_threads = sc.threads
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.log_severity_level = 3  # errors only: optimiser notes (e.g. fp16 constant folding) are not user news
+        so.add_session_config_entry("session.intra_op.allow_spinning", "1" if sc.spinning else "0")
+        if sc.profile_dir:
+            os.makedirs(sc.profile_dir, exist_ok=True)
+            so.enable_profiling = True
+            so.profile_file_prefix = str(Path(sc.profile_dir) / stage)
+        try:
+            self.sess = ort.InferenceSession(str(path), so, providers=resolve_providers(sc.provider))
+        except D3LVOInputError:
+            raise
+        except Exception as e:  # onnxruntime raises its own exception types
+            raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+        self.inputs = [(i.name, list(i.shape)) for i in self.sess.get_inputs()]
+        self.outputs = [o.name for o in self.sess.get_outputs()]
+
+    def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        return self.sess.run(None, feeds)
+
+    def end_profiling(self) -> str:
+        return self.sess.end_profiling()
+
+
+class OpenVinoSession:
+    """One OpenVINO compiled model on the CPU, latency mode (one stream: frames come one by one)."""
+
+    _core = None
+
+    def __init__(self, path: Path, sc: SessionConfig, stage: str, expected: dict | None = None):
+        from .extras import require
+
+        require("openvino", what="--backend openvino")
+        import openvino as ov
+
+        if OpenVinoSession._core is None:
+            OpenVinoSession._core = ov.Core()
+        config = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1", "INFERENCE_PRECISION_HINT": sc.ov_precision}
+        if sc.threads:
+            config["INFERENCE_NUM_THREADS"] = str(sc.threads)
+        try:
+            self.compiled = OpenVinoSession._core.compile_model(str(path), "CPU", config)
+        except Exception as e:  # OpenVINO raises RuntimeError with a long multi-line text
+            raise D3LVOInputError(path, f"OpenVINO cannot load it ({str(e).splitlines()[0][:200]})") from None
+        self.request = self.compiled.create_infer_request()
+        # a port may carry several tensor names (a converted graph's Cast keeps both): report the
+        # one the manifest uses, so the folder check compares like with like
+        want_in = [i["name"] for i in (expected or {}).get("inputs", [])]
+        want_out = [o["name"] for o in (expected or {}).get("outputs", [])]
+        self.inputs = [(_port_name(p, want_in, k), [d.get_length() if d.is_static else "?" for d in p.get_partial_shape()])
+                       for k, p in enumerate(self.compiled.inputs)]
+        self.outputs = [_port_name(p, want_out, k) for k, p in enumerate(self.compiled.outputs)]
+
+    def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        self.request.infer(feeds)
+        # the request's output tensors are reused by the next run: copy them out
+        return [self.request.get_output_tensor(k).data.copy() for k in range(len(self.outputs))]
+
+    def end_profiling(self) -> str:
+        return ""
+
+
+def _port_name(port, wanted: list[str], k: int) -> str:
+    names = port.get_names()
+    if k < len(wanted) and wanted[k] in names:
+        return wanted[k]
+    return port.get_any_name()
+
+
+def open_session(path: Path, sc: SessionConfig, stage: str, expected: dict | None = None) -> OrtSession | OpenVinoSession:
+    """`expected`: the manifest's entry for the stage (its input/output names)."""
+    return (OpenVinoSession if sc.backend == "openvino" else OrtSession)(path, sc, stage, expected)

@@ -1,0 +1,59 @@
+"""What the CPU is and what it can do, so every speed figure carries its machine: the model
+name, the vector extensions that decide which kernels run (AVX2 / AVX-512 / VNNI / BF16 / AMX),
+and a measured single-precision GEMM peak to put per-stage GFLOP/s against."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+# /proc/cpuinfo flag -> the name users know, in the order they matter for inference kernels
+ISA_FLAGS = (("avx2", "AVX2"), ("fma", "FMA"), ("avx512f", "AVX-512"), ("avx512_vnni", "AVX512-VNNI"),
+             ("avx_vnni", "AVX-VNNI"), ("avx512_bf16", "AVX512-BF16"), ("avx512_fp16", "AVX512-FP16"),
+             ("amx_bf16", "AMX-BF16"), ("amx_int8", "AMX-INT8"))
+
+
+@dataclass(frozen=True)
+class CpuInfo:
+    model: str
+    logical_cores: int
+    isa: tuple[str, ...]
+
+    def line(self) -> str:
+        return f"{self.model}, {self.logical_cores} cores, {' '.join(self.isa) or 'no AVX2'}"
+
+
+def cpu_info(cpuinfo_path: str = "/proc/cpuinfo") -> CpuInfo:
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open(cpuinfo_path) as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                key = key.strip()
+                if key == "model name":
+                    model = value.strip()
+                elif key == "flags" and not flags:
+                    flags = set(value.split())
+    except OSError:
+        pass
+    return CpuInfo(model=model, logical_cores=os.cpu_count() or 1,
+                   isa=tuple(name for flag, name in ISA_FLAGS if flag in flags))
+
+
+def gemm_peak_gflops(n: int = 1024, repeats: int = 8) -> float:
+    """Best-of single-precision GEMM rate of numpy's BLAS (all cores, as the bench's threads on
+    a 2-core vehicle computer): the ceiling a convolution-bound graph could approach."""
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((n, n), dtype=np.float32)
+    b = rng.standard_normal((n, n), dtype=np.float32)
+    a @ b  # warm-up: thread pool and caches
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - t0)
+    return 2.0 * n ** 3 / best / 1e9

@@ -1,0 +1,131 @@
+"""Engines behind the runtime (onnxruntime, OpenVINO), the CPU report and the FLOP count of `d3lvo bench`."""
+
+import importlib.util
+import json
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.backends import SessionConfig
+from d3lvo_deploy.cpu import cpu_info
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.onnx_model import StageModel
+from d3lvo_deploy.pipeline import RunConfig, run_sequence
+from d3lvo_deploy.poses import read_poses
+from d3lvo_deploy.sequence import KittiSequence
+from export.flops import graph_flops
+
+runner = CliRunner()
+
+
+def test_cpu_info_reads_model_and_vector_extensions(tmp_path):
+    f = tmp_path / "cpuinfo"
+    f.write_text("processor\t: 0\nmodel name\t: Example CPU 9000\n"
+                 "flags\t\t: fpu sse2 avx2 fma avx512f avx512_vnni amx_bf16 amx_tile\n\n"
+                 "processor\t: 1\nmodel name\t: Example CPU 9000\nflags\t\t: fpu\n")
+    info = cpu_info(str(f))
+    assert info.model == "Example CPU 9000"
+    assert info.isa == ("AVX2", "FMA", "AVX-512", "AVX512-VNNI", "AMX-BF16")  # first core's flags, known names only
+    f.write_text("model name\t: Old CPU\nflags\t\t: fpu sse2\n")
+    assert cpu_info(str(f)).isa == () and "no AVX2" in cpu_info(str(f)).line()
+
+
+def test_flop_count_by_hand(tmp_path):
+    """Conv 3->8, 3x3, pad 1 on 1x3x16x16: 2*8*16*16*3*9 FLOPs; MatMul (4,5)x(5,6): 2*4*6*5; Relu: none."""
+    w = helper.make_tensor("w", TensorProto.FLOAT, [8, 3, 3, 3], np.zeros(8 * 27, np.float32))
+    b = helper.make_tensor("b", TensorProto.FLOAT, [5, 6], np.zeros(30, np.float32))
+    nodes = [helper.make_node("Conv", ["x", "w"], ["y"], pads=[1, 1, 1, 1]),
+             helper.make_node("Relu", ["y"], ["z"]),
+             helper.make_node("MatMul", ["a", "b"], ["c"])]
+    g = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 16, 16]),
+                                       helper.make_tensor_value_info("a", TensorProto.FLOAT, [4, 5])],
+                          [helper.make_tensor_value_info("z", TensorProto.FLOAT, None),
+                           helper.make_tensor_value_info("c", TensorProto.FLOAT, None)], [w, b])
+    onnx.save(helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)]), str(tmp_path / "g.onnx"))
+    assert graph_flops(tmp_path / "g.onnx") == 2 * 8 * 16 * 16 * 3 * 9 + 2 * 4 * 6 * 5
+
+
+def test_manifest_records_stage_flops(small_model):
+    _, onnx_dir = small_model
+    m = json.loads((onnx_dir / "manifest.json").read_text())
+    for st in m["stages"].values():
+        assert st["gflops"] == round(graph_flops(onnx_dir / st["file"]) / 1e9, 4) > 0
+
+
+def test_session_config_errors():
+    for sc, words in [(SessionConfig(backend="tvm"), "--backend must be one of"),
+                      (SessionConfig(ov_precision="bf16"), "openvino only"),
+                      (SessionConfig(backend="openvino", provider="cuda"), "CPU"),
+                      (SessionConfig(backend="openvino", profile_dir="/tmp/x"), "onnxruntime profiles")]:
+        with pytest.raises(D3LVOInputError, match=words):
+            sc.check()
+
+
+needs_openvino = pytest.mark.skipif(importlib.util.find_spec("openvino") is None,
+                                    reason="the [openvino] extra is not installed")
+
+
+@needs_openvino
+def test_openvino_outputs_equal_onnxruntime(small_model, small_synth):
+    """Same folder, same inputs: every stage output of OpenVINO (f32) equals onnxruntime's."""
+    from export.quantize import calibration_feeds
+
+    _, onnx_dir = small_model
+    ort_m, ov_m = StageModel(onnx_dir), StageModel(onnx_dir, SessionConfig(backend="openvino", threads=1))
+    assert ov_m.geometric and ov_m.encoder_takes_lidar
+    for stage, items in calibration_feeds(onnx_dir, [small_synth], max_frames=3).items():
+        for fd in items:
+            a, b = ort_m.run(stage, fd), ov_m.run(stage, fd)
+            assert a.keys() == b.keys()
+            for k in a:
+                np.testing.assert_allclose(b[k], a[k], atol=1e-4 * max(1.0, float(np.abs(a[k]).max())), err_msg=k)
+
+
+@needs_openvino
+def test_openvino_trajectory_and_parity(small_model, small_synth, tmp_path):
+    from export.parity import POSE_R_TOL, POSE_T_TOL, run_parity
+
+    ck, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "ort.txt"))
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "ov.txt"), SessionConfig(backend="openvino"))
+    a, b = read_poses(tmp_path / "ort.txt").poses, read_poses(tmp_path / "ov.txt").poses
+    assert np.linalg.norm(a[-1, :3, 3]) > 1.0  # the clip moves: equality is not trivially met
+    np.testing.assert_allclose(b[:, :3, 3], a[:, :3, 3], atol=1e-5)
+    np.testing.assert_allclose(b[:, :3, :3], a[:, :3, :3], atol=1e-5)
+    rep = run_parity(ck, onnx_dir, small_synth, frames=3, sc=SessionConfig(backend="openvino"))
+    assert rep.passed and rep.reference_t_m <= POSE_T_TOL and rep.reference_r_deg <= POSE_R_TOL, rep.to_dict()
+
+
+@needs_openvino
+def test_cli_bench_times_both_engines(small_model, small_synth):
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "2",
+                            "--threads", "1", "--no-torch", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert set(d["backends"]) == {"onnxruntime", "openvino"}
+    assert d["best_backend"] == min(d["backends"], key=lambda b: d["backends"][b]["total_ms_median"])
+    assert d["cpu"]["model"] == cpu_info().model and d["gemm_peak_gflops"] > 0
+    m = json.loads((onnx_dir / "manifest.json").read_text())
+    assert d["stage_gflops"] == {k: st["gflops"] for k, st in m["stages"].items()}
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "1",
+                            "--backend", "openvino", "--no-torch"])
+    assert r.exit_code == 0, r.output
+    assert "CPU: " in r.output and "GFLOP/s" in r.output and "openvino:" in r.output and "onnxruntime:" not in r.output
+
+
+@needs_openvino
+def test_cli_run_with_openvino(small_model, small_synth, tmp_path):
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out",
+                            str(tmp_path / "p.txt"), "--backend", "openvino"])
+    assert r.exit_code == 0, r.output
+    assert len(read_poses(tmp_path / "p.txt")) == len(KittiSequence.open(small_synth))
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out",
+                            str(tmp_path / "q.txt"), "--backend", "openvino", "--ov-precision", "fp8"])
+    assert r.exit_code == 1 and "--ov-precision must be one of" in r.output
