@@ -72,24 +72,28 @@ def test_resume_after_partial_run_is_identical(small_model, small_synth, tmp_pat
 
 
 def test_killed_run_resumes_to_the_same_file(small_model, small_synth, tmp_path):
-    """A real SIGKILL mid-run (paced at 10 Hz by --realtime), then --resume."""
+    """A real SIGKILL after exactly 3 poses, then --resume. The run is paced by times.txt
+    (--realtime) and frame 3 is stamped 1000 s later, so it is asleep with 3 poses written when
+    the kill comes, however fast or slow the machine."""
     _, onnx_dir = small_model
     seq_dir = tmp_path / "seq"
     shutil.copytree(small_synth, seq_dir)
+    stamps = [0.0, 0.1, 0.2, 1000.0, 1000.1, 1000.2]
+    (seq_dir / "times.txt").write_text("".join(f"{t:.6e}\n" for t in stamps))
     full = tmp_path / "full.txt"
     assert runner.invoke(app, ["run", "--seq-dir", str(seq_dir), "--onnx", str(onnx_dir), "--out", str(full)]).exit_code == 0
     out = tmp_path / "killed.txt"
     cmd = [sys.executable, "-m", "cli.main", "run", "--seq-dir", str(seq_dir), "--onnx", str(onnx_dir), "--out", str(out)]
     proc = subprocess.Popen(cmd + ["--realtime"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while time.time() < deadline and (not out.exists() or out.read_text().count("\n") < 2):
-        time.sleep(0.005)
+    deadline = time.time() + 300
+    while time.time() < deadline and (not out.exists() or out.read_text().count("\n") < 3) and proc.poll() is None:
+        time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    written = out.read_text().count("\n")
-    assert 2 <= written < 6, "the run should have been killed part-way"
+    assert out.read_text().count("\n") == 3
     r = subprocess.run(cmd + ["--resume"], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+    assert "resuming after 3 poses" in r.stdout + r.stderr
     assert out.read_text() == full.read_text()
 
 
