@@ -6,6 +6,7 @@ Ground truth is looked for, in order: an explicit path, `poses.txt` inside the s
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,10 +34,22 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise D3LVOInputError(path, "image not found")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise D3LVOInputError(path, "cannot be decoded as an image (corrupt or not a PNG?)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    if img.dtype != np.uint8:
+        img = (img.astype(np.float32) * (255.0 / np.iinfo(img.dtype).max)).round().astype(np.uint8) \
+            if np.issubdtype(img.dtype, np.integer) else np.clip(img * 255.0, 0, 255).astype(np.uint8)
+    if img.ndim == 2 or img.shape[2] == 1:
+        # the message names the folder, not the frame, so it is shown once per sequence
+        warnings.warn(f"{path.parent}: greyscale images (KITTI's image_0/image_1 are grey; D3LVO reads the colour "
+                      "camera image_2): the grey value is used for all three channels", GreyscaleWarning, stacklevel=2)
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+
+
+class GreyscaleWarning(UserWarning):
+    """image_2 holds single-channel images: usually the greyscale cameras' folder was given."""
 
 
 @dataclass
@@ -121,13 +134,21 @@ def _check_contiguous(root: Path, names: list[str]) -> None:
 def _read_times(path: Path, n: int) -> np.ndarray:
     if not path.is_file():
         return np.arange(n) * 0.1
-    try:
-        t = np.loadtxt(path, dtype=np.float64, ndmin=1)
-    except ValueError as e:
-        raise D3LVOInputError(path, f"not a column of numbers ({e})") from None
-    if len(t) != n:
-        raise D3LVOInputError(path, f"{len(t)} timestamps for {n} frames")
-    return t
+    stamps = []
+    for k, line in enumerate(path.read_text().splitlines(), 1):
+        word = line.split()[0] if line.split() else ""
+        if not word:
+            continue
+        try:
+            stamps.append(float(word))
+        except ValueError:
+            raise D3LVOInputError(path, f"line {k}: {word[:40]!r} is not a time in seconds") from None
+        if len(stamps) > 1 and not stamps[-1] > stamps[-2]:
+            raise D3LVOInputError(path, f"line {k}: {stamps[-1]:g} s does not come after {stamps[-2]:g} s "
+                                        "(timestamps must increase)")
+    if len(stamps) != n:
+        raise D3LVOInputError(path, f"{len(stamps)} timestamps for {n} frames")
+    return np.array(stamps, dtype=np.float64)
 
 
 def _find_gt(root: Path) -> Path | None:

@@ -63,6 +63,40 @@ def test_times_count(broken):
     _fails(broken, "times.txt", "2 timestamps for 6 frames")
 
 
+@pytest.mark.parametrize("text, words", [
+    ("0.0\n0.1\nabc\n0.3\n0.4\n0.5\n", ["times.txt", "line 3", "'abc' is not a time in seconds"]),
+    ("0.0\n0.1\n0.3\n0.2\n0.4\n0.5\n", ["times.txt", "line 4", "0.2 s does not come after 0.3 s"]),
+])
+def test_times_errors_name_the_line(broken, text, words):
+    (broken / "times.txt").write_text(text)
+    _fails(broken, *words)
+    with pytest.raises(D3LVOInputError) as e:
+        KittiSequence.open(broken)
+    assert "numpy" not in str(e.value) and "loadtxt" not in str(e.value)
+
+
+def test_greyscale_images_warn_once_and_read_as_rgb(broken):
+    import warnings
+
+    import cv2
+
+    from d3lvo_deploy.sequence import GreyscaleWarning
+
+    colour = KittiSequence.open(broken).image(1)
+    for i in range(6):
+        p = broken / "image_2" / f"{i:06d}.png"
+        cv2.imwrite(str(p), cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2GRAY))
+    seq = KittiSequence.open(broken)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        imgs = [seq.image(i) for i in range(3)]
+    grey = [w for w in caught if issubclass(w.category, GreyscaleWarning)]
+    assert len({str(w.message) for w in grey}) == 1 and "image_0" in str(grey[0].message)
+    assert imgs[1].shape == colour.shape and np.array_equal(imgs[1][..., 0], imgs[1][..., 2])
+    expect = cv2.cvtColor(cv2.cvtColor(colour, cv2.COLOR_RGB2BGR), cv2.COLOR_BGR2GRAY)
+    assert np.array_equal(imgs[1][..., 0], expect)
+
+
 def test_gt_count(broken):
     (broken / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
     seq = KittiSequence.open(broken)
