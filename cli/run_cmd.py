@@ -56,7 +56,9 @@ def run_command(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an --out file that already holds poses."),
     viz: Path | None = typer.Option(None, "--viz", help="Folder for pictures of what the network sees (image, LiDAR "
                                     "and completed depth, flow, pose confidence), one PNG per --viz-every frames."),
-    viz_every: int = typer.Option(10, "--viz-every", help="With --viz: every N-th frame."),
+    viz_every: int = typer.Option(10, "--viz-every", help="With --viz or --rerun: pictures of every N-th frame."),
+    rerun: Path | None = typer.Option(None, "--rerun", help="Write a Rerun recording (FILE.rrd: trajectory, LiDAR "
+                                      "points, camera images and network outputs) for the Rerun viewer ([rerun] extra)."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
@@ -109,8 +111,10 @@ def run_command(
         model_dir = resolve_model_dir(onnx)
     if viz is not None and (method != "d3lvo" or viz_every < 1):
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
+    if rerun is not None and viz_every < 1:
+        raise D3LVOInputError(rerun, "--viz-every must be at least 1")
     rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime,
-                   viz_dir=viz, viz_every=viz_every)
+                   viz_dir=viz, viz_every=viz_every, rerun_path=rerun)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # every argument, the output file and the model are checked before the progress bar

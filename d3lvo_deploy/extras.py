@@ -12,7 +12,7 @@ import importlib
 from .errors import D3LVOInputError
 
 EXTRAS = {"torch": "train", "onnx": "train", "embreex": "synth", "matplotlib": "plot", "ray": "ray",
-          "openvino": "openvino"}
+          "openvino": "openvino", "rerun": "rerun"}
 
 
 def require(*modules: str, what: str) -> None:

@@ -60,7 +60,8 @@ class RunConfig:
     overwrite: bool = False  # replace a trajectory file that already holds poses
     realtime: bool = False  # pace frames by times.txt, like a live sensor
     viz_dir: Path | None = None  # write a picture of what the network sees every `viz_every` frames
-    viz_every: int = 10
+    viz_every: int = 10  # also the frames whose images go into the Rerun recording
+    rerun_path: Path | None = None  # write a Rerun recording (.rrd) of the run
 
 
 def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
@@ -122,6 +123,12 @@ def prepare_run(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig,
     if fmt not in ("kitti", "tum"):
         raise D3LVOInputError(None, f"--format must be kitti or tum, not {rc.fmt!r}")
     rc = replace(rc, fmt=fmt, end=end)
+    if rc.rerun_path is not None:
+        from .extras import require
+
+        require("rerun", what="--rerun")
+        if Path(rc.rerun_path).is_dir():
+            raise D3LVOInputError(rc.rerun_path, "is a folder; --rerun names the recording to write (e.g. run.rrd)")
     out = Path(rc.out)
     if out.is_dir():
         raise D3LVOInputError(out, "is a folder; --out names the trajectory file to write (e.g. 09.txt)")
@@ -158,6 +165,12 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         fh = open(out, mode, buffering=1)
     except OSError as e:
         raise D3LVOInputError(out, f"cannot write the trajectory ({e.strerror})") from None
+    recorder = None
+    if rc.rerun_path is not None:
+        from .recording import RerunRecorder
+
+        recorder = RerunRecorder(Path(rc.rerun_path), seq.calib)
+    pictures = rc.viz_dir is not None or recorder is not None
     with fh:
         if len(done):
             k = rc.start + len(done) - 1
@@ -178,11 +191,16 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
                                               f"{out}, fix the frame and rerun with --resume") from None
             read_ms = (time.perf_counter() - t0) * 1000
-            if rc.viz_dir is not None:
+            if pictures and hasattr(odo, "keep_outputs"):
                 odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
             pose = odo.step(image, points)
-            if rc.viz_dir is not None and odo.keep_outputs:
+            chosen = getattr(odo, "keep_outputs", False)
+            if rc.viz_dir is not None and chosen:
                 _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", odo)
+            if recorder is not None:
+                recorder.frame(i, pose, points, odo.last if chosen else None, getattr(odo.pre, "K", None)
+                               if getattr(odo, "pre", None) is not None else None,
+                               float(odo.model.config["min_depth"]) if chosen else 0.5)
             line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
             fh.write(line + "\n")
             fh.flush()
@@ -192,4 +210,6 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
             if progress is not None:
                 progress(j + 1, n, odo.last_timing.total + read_ms)
+    if recorder is not None:
+        recorder.close()
     return summary

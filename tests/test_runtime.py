@@ -1,5 +1,6 @@
 """The torch-free runtime: ONNX trajectory = torch trajectory, resume after a kill, bad input handling."""
 
+import importlib.util
 import inspect
 import shutil
 import signal
@@ -253,3 +254,30 @@ def test_viz_writes_a_panel_per_chosen_frame(small_model, small_synth, tmp_path)
     f[0, 0, 0], f[0, 0, 2] = 1.0, -1.0
     rgb = flow_to_rgb(f, 1.0)[0]
     assert tuple(rgb[0]) == (255, 0, 0) and tuple(rgb[1]) == (255, 255, 255) and tuple(rgb[2]) == (0, 255, 255)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("rerun") is None, reason="the [rerun] extra is not installed")
+def test_rerun_recording_holds_the_run(small_model, small_synth, tmp_path):
+    """The .rrd holds a trajectory row and a scan per frame, ending on the poses written, and the
+    network's pictures on the --viz-every frames only."""
+    import rerun.chunk as rc
+
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "p.txt"),
+                            "--rerun", str(tmp_path / "run.rrd"), "--viz-every", "2"])
+    assert r.exit_code == 0, r.output
+    rows: dict[str, int] = {}
+    last_strip = None
+    for ch in rc.RrdReader(tmp_path / "run.rrd").stream().to_chunks():
+        rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+        if ch.entity_path == "/world/trajectory":
+            last_strip = ch.to_record_batch().column("LineStrips3D:strips").to_pylist()[-1][0]
+    n = len(KittiSequence.open(small_synth))
+    assert rows["/world/trajectory"] == rows["/world/lidar"] == n
+    for entity in ("/world/camera/image", "/world/camera/lidar_depth", "/completed_depth", "/flow", "/confidence"):
+        assert rows[entity] == 2, (entity, rows)  # frames 2 and 4
+    poses = read_poses(tmp_path / "p.txt").poses
+    np.testing.assert_allclose(np.array(last_strip), poses[:, :3, 3], atol=1e-5)
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
+                            "--rerun", str(tmp_path)])
+    assert r.exit_code == 1 and "is a folder" in r.output and not (tmp_path / "q.txt").exists()
