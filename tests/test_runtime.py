@@ -281,3 +281,15 @@ def test_rerun_recording_holds_the_run(small_model, small_synth, tmp_path):
     r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
                             "--rerun", str(tmp_path)])
     assert r.exit_code == 1 and "is a folder" in r.output and not (tmp_path / "q.txt").exists()
+
+
+def test_readme_api_example_runs_as_pasted(monkeypatch, capsys):
+    """The README's streaming-API block, executed verbatim from the checkout root."""
+    text = (ROOT / "README.md").read_text()
+    start = text.index("from d3lvo_deploy.bundled import bundled_model_dir")
+    code = text[start:text.index("```", start)]
+    monkeypatch.chdir(ROOT)
+    exec(compile(code, "README.md", "exec"), {})
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert len(printed) == 3 and "flowpose" in printed[-1]
+    assert printed[0].startswith("[0. 0. 0.]")  # the first frame is the origin
