@@ -63,9 +63,15 @@ def train_command(
                                                                          pose_head=pose_head)
     except ValueError as e:
         raise D3LVOInputError(None, str(e)) from None
+    from d3lvo_deploy.sequence import KittiSequence
+
     for d in [*data, *val]:
         if not d.is_dir():
             raise D3LVOInputError(d, "sequence folder not found")
+        # read every sequence's layout and poses now, so a bad folder is one error before the bar
+        if KittiSequence.open(d).ground_truth is None:
+            raise D3LVOInputError(d, "has no ground-truth poses (poses.txt inside, or poses/NN.txt beside "
+                                     "sequences/NN): training and validation need them")
     if resume is not None:
         ck = load_checkpoint(resume)
         # the preset (size, levels) comes from the checkpoint; a different mode or head is refused

@@ -136,6 +136,22 @@ def test_checkpoint_errors(tmp_path):
         load_checkpoint(other)
 
 
+def test_training_data_without_poses_is_refused_before_any_work(small_synth, tmp_path):
+    import re
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    d = tmp_path / "seq"
+    shutil.copytree(small_synth, d)
+    (d / "poses.txt").unlink()
+    r = CliRunner().invoke(app, ["train", "--data", str(d), "--out", str(tmp_path / "a.pt"), "--steps", "1"])
+    assert r.exit_code == 1 and str(d) in r.output and "no ground-truth poses" in r.output, r.output
+    assert not re.search(r"\s0/\d+\s", r.output) and not (tmp_path / "a.pt").exists()
+
+
 def test_resume_continues_the_step_count(small_synth, tmp_path):
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
                         "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1"],
