@@ -44,7 +44,7 @@ def export_command(
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
     precision: str = typer.Option("fp32", "--precision", help="fp32 | fp16 | int8 (static, QDQ, per-channel)."),
     solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (gn_points, "
-                                     "gn_iters, gn_huber, gn_damping), e.g. --set gn_points=dense; repeatable."),
+                                     "gn_iters, gn_huber, gn_damping, gn_lidar_pool), e.g. --set gn_points=dense; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:

@@ -29,6 +29,8 @@ def train_command(
     val: list[Path] = typer.Option([], "--val", help="Validation sequence folder (repeatable)."),
     steps: int = typer.Option(1000, "--steps", help="Optimizer steps in all (a resumed run counts from where it was)."),
     resume: Path | None = typer.Option(None, "--resume", help="Continue from this checkpoint."),
+    stop_at: int | None = typer.Option(None, "--stop-at", help="Stop after this step, saving a checkpoint, while the "
+                                       "learning-rate schedule still spans --steps (a long run in parts)."),
     mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
     completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
     preset: str = typer.Option("default", "--preset", help="default (1216x352) | small (the same network at 608x176, CPU)."),
@@ -42,6 +44,9 @@ def train_command(
     seed: int = typer.Option(0, "--seed", help="Seed of weights, sampling and augmentation."),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
     workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
+    solver: list[str] = typer.Option([], "--set", help="Gauss-Newton setting without weights, KEY=VALUE (gn_points, "
+                                     "gn_iters, gn_huber, gn_damping, gn_lidar_pool); repeatable; may differ from "
+                                     "the checkpoint's on --resume."),
 ) -> None:
     """Train D3LVO; reports loss, and t_rel/r_rel/ATE on --val sequences through the evaluator, with flow, rotation and translation errors beside their baselines (zero flow, no motion).
 
@@ -53,15 +58,21 @@ def train_command(
     from dataclasses import replace
 
     from models.checkpoint import load_checkpoint
-    from models.config import D3LVOConfig
+    from models.config import SOLVER_KEYS, D3LVOConfig
+
+    from .export_cmd import _settings
     from models.train import TrainConfig, TrainingInterrupted, best_path, train
 
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
+    settings = _settings(solver)
+    bad = sorted(set(settings) - set(SOLVER_KEYS))
+    if bad:
+        raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
     try:
         cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion,
-                                                                         pose_head=pose_head)
-    except ValueError as e:
+                                                                         pose_head=pose_head, **settings)
+    except (TypeError, ValueError) as e:
         raise D3LVOInputError(None, str(e)) from None
     from d3lvo_deploy.sequence import KittiSequence
 
@@ -77,10 +88,12 @@ def train_command(
         # the preset (size, levels) comes from the checkpoint; a different mode or head is refused
         # in train() with the differing fields named
         preset_keys = ("height", "width", "flow_levels", "gn_extra_levels")
-        if replace(cfg, **{k: getattr(ck["config"], k) for k in preset_keys}) == ck["config"]:
-            cfg = ck["config"]
+        # solver settings carry over from the checkpoint unless --set names them
+        carried = preset_keys + tuple(k for k in SOLVER_KEYS if k not in settings)
+        if replace(cfg, **{k: getattr(ck["config"], k) for k in carried}) == replace(ck["config"], **settings):
+            cfg = replace(ck["config"], **settings)
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
-    tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps,
+    tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
                      device=device, num_workers=workers)
     rank0 = int(os.environ.get("RANK", "0")) == 0

@@ -22,6 +22,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
 from d3lvo_deploy.manifest import sha256_file as sha256
 from models.checkpoint import build_model, load_checkpoint
+from models.config import SOLVER_KEYS
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
 from models.pose_gn import nominal_intrinsics
@@ -42,9 +43,6 @@ class ExportConfig:
     # solver settings that have no weights, e.g. {"gn_points": "lidar"}: the same weights exported
     # with another Gauss-Newton configuration (to measure one against the other)
     solver: dict = field(default_factory=dict)
-
-
-SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping")
 
 
 def non_standard_nodes(model: onnx.ModelProto) -> list[str]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -27,8 +28,9 @@ def save_checkpoint(path: str | Path, model, cfg: D3LVOConfig, **state) -> None:
         raise D3LVOInputError(path, f"cannot write the checkpoint ({e.strerror})") from None
 
 
-def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None) -> dict:
-    """Read and validate; with `expect`, refuse a checkpoint made with another config."""
+def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None, ignore: tuple[str, ...] = ()) -> dict:
+    """Read and validate; with `expect`, refuse a checkpoint made with another config (except in
+    the `ignore` fields, e.g. solver settings that have no weights)."""
     path = Path(path)
     if path.is_dir():
         hint = (" (an exported ONNX folder; --ckpt takes the .pt checkpoint it was exported from)"
@@ -48,9 +50,8 @@ def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None) -> dict
         cfg = D3LVOConfig.from_dict(ck["config"])
     except (TypeError, ValueError) as e:
         raise D3LVOInputError(path, f"invalid model config in checkpoint ({e})") from None
-    if expect is not None and cfg != expect:
-        diff = sorted(k for k, v in expect.to_dict().items() if ck["config"].get(k) != v and
-                      not (isinstance(v, tuple) and list(v) == ck["config"].get(k)))
+    if expect is not None and replace(cfg, **{k: getattr(expect, k) for k in ignore}) != expect:
+        diff = sorted(k for k, v in expect.to_dict().items() if getattr(cfg, k) != v and k not in ignore)
         raise D3LVOInputError(path, f"checkpoint was made with another model config (differs in: {', '.join(diff)})")
     ck["config"] = cfg
     ck["path"] = str(path)

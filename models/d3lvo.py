@@ -11,6 +11,7 @@ The relative pose is T(t-1 -> t) of the image_2 camera: frame t's pose in frame 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .completion import DepthCompletion
@@ -79,7 +80,12 @@ class D3LVO(nn.Module):
         out: list[torch.Tensor | None] = []
         for lvl in range(4):
             s = 2 ** (lvl + 1)
-            out.append(sparse_inv[..., ::s, ::s] if self.cfg.gn_lidar and lvl in self.cfg.gn_levels else None)
+            if not (self.cfg.gn_lidar and lvl in self.cfg.gn_levels):
+                out.append(None)
+            elif self.cfg.gn_lidar_pool == "nearest":  # the closest return within s/2 pixels of s*i
+                out.append(F.max_pool2d(sparse_inv, kernel_size=s + 1, stride=s, padding=s // 2))
+            else:
+                out.append(sparse_inv[..., ::s, ::s])
         return out
 
     # -- stage 3 -------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from d3lvo_deploy.poses import Trajectory
 from d3lvo_deploy.sequence import KittiSequence
 
 from .checkpoint import load_checkpoint, save_checkpoint
-from .config import D3LVOConfig
+from .config import SOLVER_KEYS, D3LVOConfig
 from .d3lvo import D3LVO
 from .data import AugmentConfig, PairDataset
 from .loss import LossConfig, PoseLoss
@@ -37,6 +37,7 @@ class TrainConfig:
     out: str
     val: list[str] = field(default_factory=list)
     steps: int = 1000
+    stop_at: int | None = None  # stop after this step (checkpoint saved); the schedule still spans `steps`
     batch_size: int = 4
     lr: float = 3e-4
     weight_decay: float = 1e-4
@@ -211,7 +212,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, tc.warmup, tc.steps))
     step, history = 0, []
     if resume:
-        ck = load_checkpoint(resume, expect=cfg)
+        ck = load_checkpoint(resume, expect=cfg, ignore=SOLVER_KEYS)  # solver settings may change on resume
         model.load_state_dict(ck["model"])
         criterion.load_state_dict(ck["loss"])
         try:
@@ -248,15 +249,16 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     per_epoch = max(len(data) // (batch * world), 1)
     epoch = step // per_epoch
     t0 = time.perf_counter()
+    end = tc.steps if tc.stop_at is None else min(tc.steps, tc.stop_at)
     try:
-        while step < tc.steps:
+        while step < end:
             data.epoch = epoch
             if distributed:
                 sampler.set_epoch(epoch)
             else:
                 sampler.epoch, sampler.skip = epoch, (step - epoch * per_epoch) * batch
             for b in loader:
-                if step >= tc.steps:
+                if step >= end:
                     break
                 ddp_model.train()
                 out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
@@ -288,7 +290,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                             save_checkpoint(best_path(tc.out), model, cfg, loss=criterion.state_dict(), step=step,
                                             history=history + [record], train_config=asdict(tc))
                     history.append(record)
-                    if step % tc.ckpt_every == 0 or step == tc.steps:
+                    if step % tc.ckpt_every == 0 or step == end:
                         save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
                                         step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state())
                     if on_step is not None:

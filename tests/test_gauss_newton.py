@@ -115,3 +115,30 @@ def test_feature_normal_equations_equal_the_full_jacobian():
     H, gg = gn.feature_normal_equations(Jp, r, gu, gv, w)
     np.testing.assert_allclose(H, H_ref, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(gg, g_ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("pool", ["stride", "nearest"])
+def test_lidar_cells_by_hand(pool):
+    """Returns at input pixels (row 5, col 7) and (8, 8), inverse depths 0.3 and 0.5. "stride" keeps
+    a return only on a cell's own pixel s*i; "nearest" gives each cell the closest return (largest
+    inverse depth) within s/2 pixels of s*i, so a return between two cells counts for both."""
+    from models.config import D3LVOConfig
+    from models.d3lvo import D3LVO
+
+    cfg = D3LVOConfig.small(height=64, width=224, gn_lidar_pool=pool)
+    x = torch.zeros(1, 1, 64, 224)
+    x[0, 0, 5, 7], x[0, 0, 8, 8] = 0.3, 0.5
+    levels = D3LVO(cfg).lidar_levels(x)
+    cells = [None if a is None else {tuple(ij): round(float(a[0, 0][tuple(ij)]), 3) for ij in torch.nonzero(a[0, 0]).tolist()}
+             for a in levels]
+    if pool == "stride":  # s = 2, 4, 8, 16: only (8, 8) lies on a cell's pixel, at s = 2, 4, 8
+        assert cells[:3] == [{(4, 4): 0.5}, {(2, 2): 0.5}, {(1, 1): 0.5}]
+        assert cells[3] == {}
+    else:
+        # s = 2: (5, 7) is within 1 pixel of rows 4, 6 and cols 6, 8 -> cells (2..3, 3..4); (8, 8) -> (4, 4)
+        assert cells[0] == {(2, 3): 0.3, (2, 4): 0.3, (3, 3): 0.3, (3, 4): 0.3, (4, 4): 0.5}
+        # s = 4, cell (i, j) sees rows 4i-2..4i+2 and cols 4j-2..4j+2: (5, 7) -> (1, 2), (8, 8) -> (2, 2)
+        assert cells[1] == {(1, 2): 0.3, (2, 2): 0.5}
+        assert cells[2] == {(1, 1): 0.5}  # s = 8: both within 4 px of (8, 8); the closer return wins
+        # s = 16: (8, 8) is on the border of four cells' windows and the closer return in each
+        assert cells[3] == {(0, 0): 0.5, (0, 1): 0.5, (1, 0): 0.5, (1, 1): 0.5}

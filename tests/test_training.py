@@ -154,16 +154,30 @@ def test_training_data_without_poses_is_refused_before_any_work(small_synth, tmp
 
 def test_resume_continues_the_step_count(small_synth, tmp_path):
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
-                        "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1"],
+                        "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1",
+                        "--set", "gn_lidar_pool=stride"],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    # no --preset: the checkpoint's (small) is taken, not the default one
+    assert load_checkpoint(tmp_path / "a.pt")["config"].gn_lidar_pool == "stride"
+    # no --preset: the checkpoint's (small) is taken, not the default one; --set changes a solver
+    # setting (no weights) on resume, and the weights carry on
+    before = load_checkpoint(tmp_path / "a.pt")["model"]
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
-                        "--steps", "3", "--batch-size", "1", "--resume", str(tmp_path / "a.pt")],
+                        "--steps", "3", "--batch-size", "1", "--resume", str(tmp_path / "a.pt"),
+                        "--set", "gn_lidar_pool=nearest", "--set", "gn_iters=3"],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "resumed at step 2" in r.stderr
-    assert load_checkpoint(tmp_path / "a.pt")["step"] == 3
+    after = load_checkpoint(tmp_path / "a.pt")
+    assert after["step"] == 3 and after["config"].gn_lidar_pool == "nearest" and after["config"].gn_iters == 3
+    assert after["config"].height == 176  # the small preset, from the checkpoint
+    torch.manual_seed(1)
+    fresh = D3LVO(after["config"]).state_dict()
+    dist = lambda a: sum(float((a[k] - v).pow(2).sum()) for k, v in before.items() if v.is_floating_point())  # noqa: E731
+    assert 0 < dist(after["model"]) < 0.01 * dist(fresh)  # one more step from the same weights, not a new network
+    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "c.pt"),
+                        "--steps", "1", "--set", "flow_hidden=8"], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 1 and "--set takes solver settings only" in r.stderr
     r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "b.pt"),
                         "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume", str(tmp_path / "a.pt")],
                        cwd=ROOT, capture_output=True, text=True)
@@ -171,7 +185,7 @@ def test_resume_continues_the_step_count(small_synth, tmp_path):
 
 
 def test_resume_equals_an_uninterrupted_run(small_synth, tmp_path):
-    """1 step, then --resume to 3, equals 3 steps in one go: weights, s_t, s_q, optimizer state
+    """1 step (--stop-at 1 of 3), then --resume to 3, equals 3 steps in one go: weights, s_t, s_q, optimizer state
     (the sampler, augmentation and dropout draws continue where they stopped; 5 pairs in batches of
     2 make 2 steps an epoch, so the resumed run starts mid-epoch and crosses into the next)."""
     from models.train import TrainConfig, train
@@ -179,13 +193,15 @@ def test_resume_equals_an_uninterrupted_run(small_synth, tmp_path):
     torch.set_num_threads(1)
     cfg = D3LVOConfig.small(height=64, width=224, pose_head="mlp")  # the head with dropout
 
-    def run(out, steps, resume=None):
-        tc = TrainConfig(data=[str(small_synth)], out=str(out), steps=steps, batch_size=2, ckpt_every=1, warmup=2)
+    def run(out, steps, resume=None, stop_at=None):
+        # warm-up of 1 step: steps 2 and 3 are on the cosine, whose rate depends on the total
+        tc = TrainConfig(data=[str(small_synth)], out=str(out), steps=steps, stop_at=stop_at, batch_size=2,
+                         ckpt_every=1, warmup=1)
         train(cfg, tc, resume=resume)
         return load_checkpoint(out)
 
     one = run(tmp_path / "one.pt", 3)
-    run(tmp_path / "two.pt", 1)
+    assert run(tmp_path / "two.pt", 3, stop_at=1)["step"] == 1  # stopped part-way, the schedule spanning 3
     two = run(tmp_path / "two.pt", 3, resume=str(tmp_path / "two.pt"))
     assert one["step"] == two["step"] == 3
     for k, v in one["model"].items():
