@@ -148,7 +148,8 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             for k in fp_t:
                 diff("flowpose", k).update(fp_t[k], fp_same[k])
             motion_t = fp_t["matrix"][0].astype(np.float64)
-            motion_o = ort_model.flow_pose(prev_o, enc_o, cam_o)["matrix"][0].astype(np.float64)
+            out_o = ort_model.flow_pose(prev_o, enc_o, cam_o)
+            motion_o = out_o["matrix"][0].astype(np.float64)
             chain_t.append(motion_t)
             chain_o.append(motion_o)
         raw = _forward_inputs(pre, seq, i, cfg)
@@ -156,6 +157,11 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             init = torch.from_numpy(motion_f.astype(np.float32))[None] if geometric else None
             fwd = model(raw_prev[0], raw[0], raw_prev[1], raw[1], K if geometric else None, init)
             motion_f = fwd["matrix"][0].double().numpy()
+            # the engine's flows and confidences against forward's, output by output
+            for lvl, f in zip(cfg.flow_levels, fwd["flows"]):
+                diff("vs_forward", f"flow_l{lvl}").update(f.numpy(), out_o[f"flow_l{lvl}"])
+            for lvl, c in zip(cfg.gn_levels if "confidence" in fwd else (), fwd.get("confidence", [])):
+                diff("vs_forward", f"confidence_l{lvl}").update(c.numpy(), out_o[f"confidence_l{lvl}"])
             chain_f.append(motion_f)
         prev_t, prev_o, raw_prev = enc_t, enc_o, raw
     E = relative(np.array(chain_t), np.array(chain_o))

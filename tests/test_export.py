@@ -60,7 +60,8 @@ def test_walker_catches_custom_domains():
 
 def test_parity_reduced_size(exported, small_synth):
     """ONNX against D3LVO.forward (no export wrapper on the reference side) on pairs whose motion
-    is far above the tolerance: the Gauss-Newton head responds to its input even untrained."""
+    is far above the tolerance: the Gauss-Newton head responds to its input even untrained, and
+    flows and confidences are compared as well (an untrained pose barely depends on the features)."""
     from export.parity import POSE_R_TOL, POSE_T_TOL
 
     ck, out, _ = exported
@@ -70,6 +71,8 @@ def test_parity_reduced_size(exported, small_synth):
     assert rep.chained_t_m <= POSE_T_TOL and rep.chained_r_deg <= POSE_R_TOL
     assert rep.reference_t_m <= POSE_T_TOL and rep.reference_r_deg <= POSE_R_TOL
     assert rep.motion_t_m > 1000 * POSE_T_TOL, rep.to_dict()
+    # flows and confidences of the ONNX chain are compared with forward's too, output by output
+    assert {"flow_l1", "confidence_l1"} <= set(rep.stages["vs_forward"])
 
 
 @pytest.mark.parametrize("kw", [dict(mode="rgb"), dict(mode="rgb_sparse"), dict(completion="ipbasic"),
