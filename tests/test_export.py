@@ -169,14 +169,35 @@ FP16_REL = 1e-3
 INT8_SPREAD = 0.1
 
 
+def _stage_inputs(model_dir, seq_dir, frames: int = 3) -> dict[str, list[dict]]:
+    """What each stage receives on the first frames, built here from the frames and the fp32
+    stages (not with export.quantize's calibration code, which a test of it must not trust)."""
+    from d3lvo_deploy.frames import FramePreprocessor
+    from d3lvo_deploy.onnx_model import camera_inputs, flowpose_feeds
+    from d3lvo_deploy.sequence import KittiSequence
+
+    m, seq = StageModel(model_dir), KittiSequence.open(seq_dir)
+    h, w = seq.image(0).shape[:2]
+    pre = FramePreprocessor.for_model(seq.calib, w, h, m.config, m.depth_input)
+    feeds: dict[str, list[dict]] = {"completion": [], "encoder": [], "flowpose": []}
+    prev = None
+    for i in range(frames):
+        rgb, sparse = pre.rgb_input(seq.image(i)), pre.invdepth_input(seq.scan(i))
+        feeds["completion"].append({"rgb_norm": rgb, "sparse_invdepth": sparse})
+        enc_in = {"rgb_norm": rgb, "invdepth": m.complete(rgb, sparse), "sparse_invdepth": sparse}
+        feeds["encoder"].append(enc_in)
+        enc = m.run("encoder", enc_in)
+        if prev is not None:
+            feeds["flowpose"].append(flowpose_feeds(m.input_names("flowpose"), prev, enc, camera_inputs(pre.K)))
+        prev = enc
+    return feeds
+
+
 def _quantized_errors(fp32_dir, q_dir, seq_dir) -> dict[str, tuple[float, float, float]]:
     """(max |q - fp32|, max |fp32|, spread of fp32) per stage output."""
-    from export.quantize import calibration_feeds
-
-    feeds = calibration_feeds(fp32_dir, [seq_dir], max_frames=3)
     f32, q = StageModel(fp32_dir), StageModel(q_dir)
     errs: dict[str, list] = {}
-    for stage, items in feeds.items():
+    for stage, items in _stage_inputs(fp32_dir, seq_dir).items():
         for fd in items:
             ref, got = f32.run(stage, fd), q.run(stage, fd)
             for k, r in ref.items():
