@@ -9,6 +9,7 @@ digits, which read back to the same float64).
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -171,7 +172,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
 
         recorder = RerunRecorder(Path(rc.rerun_path), seq.calib)
     pictures = rc.viz_dir is not None or recorder is not None
-    with fh:
+    with fh, _closing(recorder):
         if len(done):
             k = rc.start + len(done) - 1
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
@@ -198,9 +199,10 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             if rc.viz_dir is not None and chosen:
                 _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", odo)
             if recorder is not None:
-                recorder.frame(i, pose, points, odo.last if chosen else None, getattr(odo.pre, "K", None)
-                               if getattr(odo, "pre", None) is not None else None,
-                               float(odo.model.config["min_depth"]) if chosen else 0.5)
+                if chosen:  # the network's view of this frame, with its camera matrix
+                    recorder.frame(i, pose, points, odo.last, odo.pre.K, float(odo.model.config["min_depth"]))
+                else:
+                    recorder.frame(i, pose, points)
             line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
             fh.write(line + "\n")
             fh.flush()
@@ -210,6 +212,14 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
             if progress is not None:
                 progress(j + 1, n, odo.last_timing.total + read_ms)
-    if recorder is not None:
-        recorder.close()
     return summary
+
+
+@contextmanager
+def _closing(recorder):
+    """Close the Rerun recording however the run ends, so an interrupted run keeps its frames."""
+    try:
+        yield
+    finally:
+        if recorder is not None:
+            recorder.close()
