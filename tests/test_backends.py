@@ -104,7 +104,7 @@ def test_openvino_trajectory_and_parity(small_model, small_synth, tmp_path):
 @needs_openvino
 def test_cli_bench_times_both_engines(small_model, small_synth):
     _, onnx_dir = small_model
-    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "2",
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "1",
                             "--threads", "1", "--no-torch", "--json"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)

@@ -37,7 +37,7 @@ def test_stage_times_summary_by_hand():
 def test_cli_bench_json(small_model, small_synth):
     ck, onnx_dir = small_model
     r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "3",
-                            "--threads", "1", "--json"])
+                            "--threads", "1", "--json", "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
     for key in ("total_ms_median", "ort_over_torch", "rss_mb", "fps", "stages_ms", "torch_stages_ms"):
@@ -49,7 +49,8 @@ def test_cli_bench_json(small_model, small_synth):
 
 def test_cli_bench_from_checkpoint(small_model, small_synth):
     ck, _ = small_model
-    r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch"])
+    r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch",
+                            "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output
     assert "frames/s" in r.output
 
@@ -57,7 +58,7 @@ def test_cli_bench_from_checkpoint(small_model, small_synth):
 def test_cli_bench_default_network_at_another_size(small_synth):
     """--height/--width without --ckpt: the default network (D3LVOConfig()) exported at that size."""
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--seq-dir", str(small_synth), "--runs", "1",
-                            "--threads", "1", "--no-torch", "--json"])
+                            "--threads", "1", "--no-torch", "--json", "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
     assert d["size"] == "256x64"
@@ -108,7 +109,8 @@ def test_conv_bench_table_totals(capsys):
 def test_cli_bench_precision(small_synth):
     """--precision exports the default network at that precision first; the JSON says which."""
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "fp16", "--seq-dir",
-                            str(small_synth), "--runs", "1", "--threads", "1", "--no-torch", "--json"])
+                            str(small_synth), "--runs", "1", "--threads", "1", "--no-torch", "--json", "--backend",
+                            "onnxruntime"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout)["precision"] == "fp16"
 
