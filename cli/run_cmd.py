@@ -63,8 +63,8 @@ def run_command(
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
     threads: int = typer.Option(0, "--threads", help="Inference threads (0: all cores)."),
-    backend: str = typer.Option("onnxruntime", "--backend", help="onnxruntime | openvino (the [openvino] extra; "
-                                "`d3lvo bench` says which is faster on this CPU)."),
+    backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the [openvino] extra) | auto "
+                                "(openvino where installed, else onnxruntime; `d3lvo bench` times both)."),
     ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 uses "
                                      "the CPU's AVX512_BF16/AMX paths; see the README's precision table)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
@@ -126,6 +126,8 @@ def run_command(
                       "nothing to run (--overwrite starts over)", highlight=False)
         _score(seq, out_path, plan.rc.fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
         return
+    if method == "d3lvo":
+        console.print(f"model {model_dir} on {plan.odo.model.backend}", highlight=False)
     if plan.done.shape[0]:
         console.print(f"resuming after {len(plan.done)} poses already in {out_path}", highlight=False)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:

@@ -10,7 +10,7 @@ the machine at hand.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,9 @@ import numpy as np
 from .errors import D3LVOInputError
 
 BACKENDS = ("onnxruntime", "openvino")
+# "auto": OpenVINO where installed (faster on every stage but completion in `d3lvo bench` here:
+# the bundled model 50.8 vs 81.4 ms per frame), else onnxruntime; the two agree within 1e-5
+AUTO = "auto"
 # OpenVINO's CPU inference precision: f32 is exact to onnxruntime's; bf16 uses the CPU's
 # AVX512_BF16 / AMX fast paths where it has them, for completion and encoder only: with the
 # Gauss-Newton solver in bf16 too, held-out t_rel went from 0.68 / 0.73 % to 5.65 / 6.27 %
@@ -38,9 +41,17 @@ class SessionConfig:
     backend: str = "onnxruntime"
     ov_precision: str = "f32"
 
+    def resolved(self) -> "SessionConfig":
+        """The same settings with "auto" replaced by the engine it picks here."""
+        if self.backend != AUTO:
+            return self
+        return replace(self, backend="openvino" if "openvino" in available_backends() else "onnxruntime")
+
     def check(self) -> None:
-        if self.backend not in BACKENDS:
-            raise D3LVOInputError(None, f"--backend must be one of {', '.join(BACKENDS)}, not {self.backend!r}")
+        if self.backend not in (*BACKENDS, AUTO):
+            raise D3LVOInputError(None, f"--backend must be one of {', '.join(BACKENDS)} or {AUTO}, not {self.backend!r}")
+        if self.backend == AUTO:
+            return self.resolved().check()
         if self.ov_precision not in OV_PRECISIONS:
             raise D3LVOInputError(None, f"--ov-precision must be one of {', '.join(OV_PRECISIONS)}, "
                                         f"not {self.ov_precision!r}")

@@ -71,6 +71,7 @@ class StageModel:
         self.height = self.manifest["input"]["height"]
         self.width = self.manifest["input"]["width"]
         sc.check()
+        sc = sc.resolved()
         self.backend = sc.backend
         self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
         for name, st in self.manifest["stages"].items():

@@ -131,6 +131,14 @@ def test_cli_run_with_openvino(small_model, small_synth, tmp_path):
     assert r.exit_code == 1 and "--ov-precision must be one of" in r.output
 
 
+def test_auto_picks_openvino_where_installed(small_model):
+    _, onnx_dir = small_model
+    expect = "openvino" if importlib.util.find_spec("openvino") else "onnxruntime"
+    assert SessionConfig(backend="auto").resolved().backend == expect
+    assert StageModel(onnx_dir, SessionConfig(backend="auto", threads=1)).backend == expect
+    assert SessionConfig(backend="onnxruntime").resolved().backend == "onnxruntime"
+
+
 @needs_openvino
 def test_bf16_leaves_the_solver_in_f32(small_model):
     """--ov-precision bf16 is for the convolution stages: the Gauss-Newton solver stays f32 (in
