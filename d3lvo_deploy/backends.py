@@ -45,7 +45,10 @@ class SessionConfig:
         """The same settings with "auto" replaced by the engine it picks here."""
         if self.backend != AUTO:
             return self
-        return replace(self, backend="openvino" if "openvino" in available_backends() else "onnxruntime")
+        # a GPU provider or an onnxruntime profile asks for onnxruntime
+        ort_only = self.provider != "cpu" or self.profile_dir is not None
+        use_ov = not ort_only and "openvino" in available_backends()
+        return replace(self, backend="openvino" if use_ov else "onnxruntime")
 
     def check(self) -> None:
         if self.backend not in (*BACKENDS, AUTO):

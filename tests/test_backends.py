@@ -137,6 +137,8 @@ def test_auto_picks_openvino_where_installed(small_model):
     assert SessionConfig(backend="auto").resolved().backend == expect
     assert StageModel(onnx_dir, SessionConfig(backend="auto", threads=1)).backend == expect
     assert SessionConfig(backend="onnxruntime").resolved().backend == "onnxruntime"
+    # a GPU provider is onnxruntime's: auto does not turn it into an error
+    assert SessionConfig(backend="auto", provider="cuda").resolved().backend == "onnxruntime"
 
 
 @needs_openvino
