@@ -186,6 +186,7 @@ def bench_command(
         "model": str(onnx), "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
         "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
         "threads": threads, "runs": runs, "frames_from": str(seq.root),
+        "ov_precision": ov_precision if "openvino" in engines else None,
         "cpu": {"model": cpu.model, "cores": cpu.logical_cores, "isa": list(cpu.isa)},
         "gemm_peak_gflops": peak, "stage_gflops": gflops,
         "backends": {b: {"stages_ms": t, "total_ms_median": t["total"]["median"], "total_ms_max": t["total"]["max"],
@@ -216,7 +217,8 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
     cpu = res["cpu"]
     out.print(f"CPU: {cpu['model']}, {cpu['cores']} cores, {' '.join(cpu['isa']) or 'no AVX2'}; "
               f"numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
-    t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}), "
+    ovp = f", OpenVINO {res['ov_precision']}" if res.get("ov_precision") not in (None, "f32") else ""
+    t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}{ovp}), "
                     "ms per frame")
     t.add_column("stage", justify="right")
     t.add_column("GFLOP", justify="right")
