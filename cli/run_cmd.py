@@ -86,7 +86,7 @@ def run_command(
     if sequences is not None:
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")
-        return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap)
+        return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap, backend)
     if out_path is None:
         raise D3LVOInputError(None, "--out FILE is required (or --sequences with --out-dir)")
     if (seq_dir is None) == (kitti_root is None):
@@ -159,8 +159,11 @@ def _print_warnings(caught) -> None:
             console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
 
 
-def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap) -> None:
+def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend) -> None:
+    import os
     import time
+
+    from d3lvo_deploy.backends import SessionConfig
 
     from d3lvo_deploy.evaluation import evaluate_files
     from d3lvo_deploy.scaleout import parse_sequences, run_many
@@ -178,11 +181,16 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     from d3lvo_deploy.scaleout import plan_chunks
 
     total = sum(len(plan_chunks(len(KittiSequence.open(d)), chunk, overlap)) for d in dirs.values())
+    # the machine's cores split between the workers, on the engine --backend names (resolved here,
+    # so every worker runs the same one)
+    sc = SessionConfig(threads=max(1, (os.cpu_count() or 1) // max(workers, 1)), backend=backend)
+    sc.check()
+    sc = sc.resolved()
     t0 = time.perf_counter()
     with frame_progress() as bar:
         task = bar.add_task(f"{engine} x{workers}", total=total, rate="chunks")
         residuals = run_many(dirs, resolve_model_dir(onnx), out_dir, engine=engine, workers=workers, chunk=chunk,
-                             overlap=overlap, address=address, on_chunk=lambda c: bar.advance(task),
+                             overlap=overlap, address=address, sc=sc, on_chunk=lambda c: bar.advance(task),
                              on_sequence=lambda n, p, r: console.print(f"{n}: {p} (overlap residual {r:.1e} m)",
                                                                          highlight=False))
     console.print(f"{len(residuals)} sequences in {time.perf_counter() - t0:.1f} s", highlight=False)
