@@ -214,9 +214,10 @@ def bench_command(
 def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict | None, top_ops) -> None:
     from d3lvo_deploy.bench import BENCH_STAGES
 
-    cpu = res["cpu"]
-    out.print(f"CPU: {cpu['model']}, {cpu['cores']} cores, {' '.join(cpu['isa']) or 'no AVX2'}; "
-              f"numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
+    from d3lvo_deploy.cpu import CpuInfo
+
+    cpu = CpuInfo(res["cpu"]["model"], res["cpu"]["cores"], tuple(res["cpu"]["isa"]))
+    out.print(f"CPU: {cpu.line()}; numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
     ovp = f", OpenVINO {res['ov_precision']}" if res.get("ov_precision") not in (None, "f32") else ""
     t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}{ovp}), "
                     "ms per frame")

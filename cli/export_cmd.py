@@ -21,7 +21,10 @@ def default_calibration(tmp: Path) -> list[Path]:
     return seqs + ([real] if real is not None else [])
 
 
-def _settings(pairs: list[str]) -> dict:
+def solver_settings(pairs: list[str]) -> dict:
+    """`--set KEY=VALUE` pairs -> {key: int | float | str}, solver settings only."""
+    from models.config import check_solver_settings
+
     out: dict = {}
     for p in pairs:
         key, sep, val = p.partition("=")
@@ -31,6 +34,7 @@ def _settings(pairs: list[str]) -> dict:
             out[key] = int(val) if val.isdigit() else float(val) if val.replace(".", "", 1).replace("e-", "", 1).isdigit() else val
         except ValueError:
             out[key] = val
+    check_solver_settings(out)
     return out
 
 
@@ -62,7 +66,7 @@ def export_command(
         fp32_dir = out if precision == "fp32" else Path(tmpd) / "fp32"
         with console.status("exporting"):
             m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
-                                                     dynamic_batch=dynamic_batch, solver=_settings(solver)),
+                                                     dynamic_batch=dynamic_batch, solver=solver_settings(solver)),
                                   progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
         if precision != "fp32":
             from export.quantize import quantize_folder

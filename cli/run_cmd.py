@@ -121,10 +121,11 @@ def run_command(
         with console.status("loading the model"):
             plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
     _print_warnings(caught)
+    label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
     if plan.finished:
         console.print(f"{out_path} already holds all {plan.n} poses of frames {plan.rc.start}..{plan.rc.end - 1}: "
                       "nothing to run (--overwrite starts over)", highlight=False)
-        _score(seq, out_path, plan.rc.fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
+        _score(seq, out_path, plan.rc.fmt, start, end, plot, label)
         return
     if method == "d3lvo":
         console.print(f"model {model_dir} on {plan.odo.model.backend}", highlight=False)
@@ -147,7 +148,7 @@ def run_command(
     _print_warnings(caught)
     out.print(latency_table(summary.stats()))
     out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, cam0, first pose identity)", highlight=False)
-    _score(seq, out_path, plan.rc.fmt, start, end, plot, "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker")
+    _score(seq, out_path, plan.rc.fmt, start, end, plot, label)
 
 
 def _print_warnings(caught) -> None:

@@ -59,16 +59,13 @@ def train_command(
 
     from models.checkpoint import load_checkpoint
     from models.config import SOLVER_KEYS, D3LVOConfig
-
-    from .export_cmd import _settings
     from models.train import TrainConfig, TrainingInterrupted, best_path, train
+
+    from .export_cmd import solver_settings
 
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
-    settings = _settings(solver)
-    bad = sorted(set(settings) - set(SOLVER_KEYS))
-    if bad:
-        raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
+    settings = solver_settings(solver)
     try:
         cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion,
                                                                          pose_head=pose_head, **settings)

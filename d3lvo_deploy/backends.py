@@ -10,10 +10,12 @@ the machine at hand.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 
 from .errors import D3LVOInputError
 
@@ -27,6 +29,25 @@ AUTO = "auto"
 # (README, precision table), as fp16 exports keep that stage in fp32 for the same reason.
 OV_PRECISIONS = ("f32", "bf16")
 REDUCED_PRECISION_STAGES = ("completion", "encoder")
+
+PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
+OPT_LEVELS = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+
+
+def resolve_providers(name: str) -> list[str]:
+    if name not in PROVIDERS:
+        raise D3LVOInputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, not {name!r}")
+    wanted = PROVIDERS[name]
+    available = ort.get_available_providers()
+    if wanted not in available:
+        warnings.warn(f"{wanted} is not available in this onnxruntime build; falling back to CPU", stacklevel=2)
+        return ["CPUExecutionProvider"]
+    return [wanted, "CPUExecutionProvider"] if wanted != "CPUExecutionProvider" else [wanted]
 
 
 @dataclass(frozen=True)
@@ -83,10 +104,6 @@ class OrtSession:
     """One onnxruntime InferenceSession; inputs/outputs as (name, shape) and names."""
 
     def __init__(self, path: Path, sc: SessionConfig, stage: str, expected: dict | None = None):
-        import onnxruntime as ort
-
-        from .onnx_model import OPT_LEVELS, resolve_providers
-
         if sc.optimization not in OPT_LEVELS:
             raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
         so = ort.SessionOptions()

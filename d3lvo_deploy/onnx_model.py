@@ -9,35 +9,15 @@ returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1'
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
-from .backends import OpenVinoSession, OrtSession, SessionConfig, open_session
+# SessionConfig and the onnxruntime settings are re-exported: they lived here before backends.py
+from .backends import OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig, open_session  # noqa: F401
+from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import load_manifest
-
-PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
-OPT_LEVELS = {
-    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
-    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-}
-
-
-def resolve_providers(name: str) -> list[str]:
-    if name not in PROVIDERS:
-        raise D3LVOInputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, not {name!r}")
-    wanted = PROVIDERS[name]
-    available = ort.get_available_providers()
-    if wanted not in available:
-        warnings.warn(f"{wanted} is not available in this onnxruntime build; falling back to CPU", stacklevel=2)
-        return ["CPUExecutionProvider"]
-    return [wanted, "CPUExecutionProvider"] if wanted != "CPUExecutionProvider" else [wanted]
-
 
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:
     """Map two frames' encoder outputs (`feat_lK`, `invdepth_lK`, `grey_lK`) onto the flow+pose

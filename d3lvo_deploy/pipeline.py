@@ -9,7 +9,7 @@ digits, which read back to the same float64).
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import closing, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -21,6 +21,7 @@ from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .poses import format_kitti_line, format_tum_line, read_poses
 from .sequence import KittiSequence
+from .viz import network_view
 
 
 EXACT = ".17g"  # 17 significant digits read back to the same float64: what makes --resume exact
@@ -80,18 +81,11 @@ def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
     return traj.poses
 
 
-def _write_viz(path: Path, odo) -> None:
+def _write_viz(path: Path, view: dict) -> None:
     """One panel of what the network saw for this frame (d3lvo_deploy.viz)."""
     from .viz import frame_panel, write_panel
 
-    last, min_d = odo.last, float(odo.model.config["min_depth"])
-    metres = lambda inv: np.divide(min_d, inv, out=np.zeros_like(inv), where=inv > 0)[0, 0]  # noqa: E731
-    out = last.get("flowpose", {})
-    flows = sorted((k for k in out if k.startswith("flow_l")), key=lambda k: int(k[6:]))
-    confs = sorted((k for k in out if k.startswith("confidence_l")), key=lambda k: int(k[12:]))
-    dense = last.get("dense_invdepth") if "completion" in odo.model.sessions else None
-    panel = frame_panel(last["image"], metres(last["sparse_invdepth"]), None if dense is None else metres(dense),
-                        out[flows[0]][0] if flows else None, out[confs[0]][0, 0] if confs else None)
+    panel = frame_panel(view["image"], view["lidar_m"], view["dense_m"], view["flow"], view["confidence"])
     try:
         write_panel(path, panel)
     except OSError as e:
@@ -172,7 +166,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
 
         recorder = RerunRecorder(Path(rc.rerun_path), seq.calib)
     pictures = rc.viz_dir is not None or recorder is not None
-    with fh, _closing(recorder):
+    with fh, closing(recorder) if recorder is not None else nullcontext():
         if len(done):
             k = rc.start + len(done) - 1
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
@@ -195,14 +189,13 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             if pictures and hasattr(odo, "keep_outputs"):
                 odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
             pose = odo.step(image, points)
-            chosen = getattr(odo, "keep_outputs", False)
-            if rc.viz_dir is not None and chosen:
-                _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", odo)
+            view = None
+            if getattr(odo, "keep_outputs", False):  # a chosen frame: what the network saw, once for both
+                view = network_view(odo.last, odo.model.dense_depth_m, "completion" in odo.model.sessions)
+            if rc.viz_dir is not None and view is not None:
+                _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", view)
             if recorder is not None:
-                if chosen:  # the network's view of this frame, with its camera matrix
-                    recorder.frame(i, pose, points, odo.last, odo.pre.K, float(odo.model.config["min_depth"]))
-                else:
-                    recorder.frame(i, pose, points)
+                recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
             line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
             fh.write(line + "\n")
             fh.flush()
@@ -214,12 +207,3 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 progress(j + 1, n, odo.last_timing.total + read_ms)
     return summary
 
-
-@contextmanager
-def _closing(recorder):
-    """Close the Rerun recording however the run ends, so an interrupted run keeps its frames."""
-    try:
-        yield
-    finally:
-        if recorder is not None:
-            recorder.close()

@@ -34,9 +34,10 @@ class RerunRecorder:
         self.positions: list[np.ndarray] = []
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # KITTI cameras: x right, y down, z forward
 
-    def frame(self, i: int, pose: np.ndarray, points: np.ndarray | None, seen: dict | None = None,
-              K: np.ndarray | None = None, min_depth: float = 0.5) -> None:
-        """`pose`: 4x4 cam0 pose; `points`: the (N,4) scan; `seen`: Odometry.last when kept."""
+    def frame(self, i: int, pose: np.ndarray, points: np.ndarray | None, view: dict | None = None,
+              K: np.ndarray | None = None) -> None:
+        """`pose`: 4x4 cam0 pose; `points`: the (N,4) scan; `view`: `viz.network_view` of a
+        chosen frame, with `K` the network view's camera matrix."""
         rr = self.rr
         self.rec.set_time("frame", sequence=i)
         self.positions.append(pose[:3, 3].copy())
@@ -44,31 +45,26 @@ class RerunRecorder:
         if points is not None and len(points):
             step = max(1, len(points) // MAX_POINTS)
             p = points[::step, :3].astype(np.float64)
-            world = p @ (pose @ self.T_cam0_velo)[:3, :3].T + (pose @ self.T_cam0_velo)[:3, 3]
+            T = pose @ self.T_cam0_velo
+            world = p @ T[:3, :3].T + T[:3, 3]
             self.rec.log("world/lidar", rr.Points3D(world.astype(np.float32), radii=0.03,
                                                     colors=_height_colours(p[:, 2])))
-        if seen is None or K is None:
+        if view is None or K is None:
             return
         from .viz import colourise, flow_to_rgb
 
         cam = pose @ self.T_cam0_cam2
-        image = seen["image"]
-        h, w = image.shape[:2]
+        h, w = view["image"].shape[:2]
         self.rec.log("world/camera", rr.Transform3D(translation=cam[:3, 3], mat3x3=cam[:3, :3]))
         self.rec.log("world/camera", rr.Pinhole(image_from_camera=K, width=w, height=h))
-        self.rec.log("world/camera/image", rr.Image(image).compress(jpeg_quality=85))
-        metres = lambda inv: np.divide(min_depth, inv, out=np.zeros_like(inv), where=inv > 0)[0, 0]  # noqa: E731
-        self.rec.log("world/camera/lidar_depth", rr.DepthImage(metres(seen["sparse_invdepth"]), meter=1.0))
-        if "dense_invdepth" in seen and seen["dense_invdepth"] is not seen["sparse_invdepth"]:
-            self.rec.log("completed_depth", rr.DepthImage(metres(seen["dense_invdepth"]), meter=1.0))
-        out = seen.get("flowpose", {})
-        flows = sorted((k for k in out if k.startswith("flow_l")), key=lambda k: int(k[6:]))
-        confs = sorted((k for k in out if k.startswith("confidence_l")), key=lambda k: int(k[12:]))
-        if flows:
-            self.rec.log("flow", rr.Image(flow_to_rgb(out[flows[0]][0])))
-        if confs:
-            c = out[confs[0]][0, 0]
-            self.rec.log("confidence", rr.Image(colourise(c, 0.0, 2.0)))
+        self.rec.log("world/camera/image", rr.Image(view["image"]).compress(jpeg_quality=85))
+        self.rec.log("world/camera/lidar_depth", rr.DepthImage(view["lidar_m"], meter=1.0))
+        if view["dense_m"] is not None:
+            self.rec.log("completed_depth", rr.DepthImage(view["dense_m"], meter=1.0))
+        if view["flow"] is not None:
+            self.rec.log("flow", rr.Image(flow_to_rgb(view["flow"])))
+        if view["confidence"] is not None:
+            self.rec.log("confidence", rr.Image(colourise(view["confidence"], 0.0, 2.0)))
 
     def close(self) -> None:
         self.rec.flush()

@@ -136,9 +136,10 @@ def _read_times(path: Path, n: int) -> np.ndarray:
         return np.arange(n) * 0.1
     stamps = []
     for k, line in enumerate(path.read_text().splitlines(), 1):
-        word = line.split()[0] if line.split() else ""
-        if not word:
+        words = line.split()
+        if not words:
             continue
+        word = words[0]
         try:
             stamps.append(float(word))
         except ValueError:

@@ -51,6 +51,19 @@ def _ramp(lo: float, hi: float) -> np.ndarray:
     return colourise(np.linspace(lo, hi, 256)[None, :], lo, hi)
 
 
+def network_view(last: dict, to_metres, completed: bool) -> dict:
+    """One frame's kept tensors (`Odometry.last`) as what the pictures show: the camera image,
+    LiDAR and completed depth in metres (`to_metres`: StageModel.dense_depth_m), the finest flow
+    (2,h,w) and the finest Gauss-Newton confidence (h,w); None where the model has none."""
+    out = last.get("flowpose", {})
+    finest = lambda prefix: min((k for k in out if k.startswith(prefix)), key=lambda k: int(k[len(prefix):]),  # noqa: E731
+                                default=None)
+    flow, conf = finest("flow_l"), finest("confidence_l")
+    return {"image": last["image"], "lidar_m": to_metres(last["sparse_invdepth"])[0, 0],
+            "dense_m": to_metres(last["dense_invdepth"])[0, 0] if completed else None,
+            "flow": None if flow is None else out[flow][0], "confidence": None if conf is None else out[conf][0, 0]}
+
+
 def frame_panel(image: np.ndarray, sparse_m: np.ndarray, dense_m: np.ndarray | None, flow: np.ndarray | None,
                 confidence: np.ndarray | None, max_depth: float = 80.0) -> np.ndarray:
     """Rows of equal width (the network view's): image, LiDAR depth, completed depth, flow,

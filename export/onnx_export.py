@@ -22,7 +22,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
 from d3lvo_deploy.manifest import sha256_file as sha256
 from models.checkpoint import build_model, load_checkpoint
-from models.config import SOLVER_KEYS
+from models.config import check_solver_settings
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
 from models.pose_gn import nominal_intrinsics
@@ -141,9 +141,7 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         raise D3LVOInputError(None, f"--height/--width {w}x{h} must be divisible by 16")
     if ec.opset < 16:
         raise D3LVOInputError(None, f"--opset {ec.opset}: GridSample (bilinear warping) needs opset 16 or newer")
-    bad = sorted(set(ec.solver) - set(SOLVER_KEYS))
-    if bad:
-        raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
+    check_solver_settings(ec.solver)
     try:
         cfg = replace(cfg, height=h, width=w, **ec.solver)
     except (TypeError, ValueError) as e:

@@ -164,18 +164,18 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
                 diff("vs_forward", f"confidence_l{lvl}").update(c.numpy(), out_o[f"confidence_l{lvl}"])
             chain_f.append(motion_f)
         prev_t, prev_o, raw_prev = enc_t, enc_o, raw
-    E = relative(np.array(chain_t), np.array(chain_o))
-    rep.chained_t_m = float(np.linalg.norm(E[:, :3, 3], axis=1).max())
-    rep.chained_r_deg = float(np.degrees(rotation_angle_precise(E[:, :3, :3])).max())
-    E = relative(np.array(chain_f), np.array(chain_o))
-    rep.reference_t_m = float(np.linalg.norm(E[:, :3, 3], axis=1).max())
-    rep.reference_r_deg = float(np.degrees(rotation_angle_precise(E[:, :3, :3])).max())
-    F_ = np.array(chain_f)
-    rep.motion_t_m = float(np.linalg.norm(F_[:, :3, 3], axis=1).max())
-    rep.motion_r_deg = float(np.degrees(rotation_angle_precise(F_[:, :3, :3])).max())
+    rep.chained_t_m, rep.chained_r_deg = _largest_motion(relative(np.array(chain_t), np.array(chain_o)))
+    rep.reference_t_m, rep.reference_r_deg = _largest_motion(relative(np.array(chain_f), np.array(chain_o)))
+    rep.motion_t_m, rep.motion_r_deg = _largest_motion(np.array(chain_f))
     if tmp is not None:
         tmp.cleanup()
     return rep
+
+
+def _largest_motion(T: np.ndarray) -> tuple[float, float]:
+    """Largest translation (m) and rotation (deg) among (N,4,4) motions."""
+    return (float(np.linalg.norm(T[:, :3, 3], axis=1).max()),
+            float(np.degrees(rotation_angle_precise(T[:, :3, :3])).max()))
 
 
 def _forward_inputs(pre: FramePreprocessor, seq: KittiSequence, i: int, cfg) -> tuple:

@@ -13,6 +13,15 @@ COMPLETIONS = ("learned", "ipbasic")
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool")
 
 
+def check_solver_settings(settings: dict) -> None:
+    """Refuse `--set` keys that are not solver settings (they would change weights' meaning)."""
+    bad = sorted(set(settings) - set(SOLVER_KEYS))
+    if bad:
+        from d3lvo_deploy.errors import D3LVOInputError
+
+        raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
+
+
 @dataclass
 class D3LVOConfig:
     # input (paper: 1216x352 bottom-centre crop of image_2; `scale` resizes it for cheaper models)
