@@ -164,9 +164,15 @@ def test_cli_parity_json(exported, small_synth):
 # Bounds against the fp32 folder, per output, on the inputs each stage really gets (the fp32
 # upstream stages' outputs on the frames): fp16 relative to the output's largest magnitude,
 # int8 a fraction of the output's spread (max - min), so an output stuck at zero or at a
-# constant cannot pass (its error is at least half the spread).
+# constant cannot pass (its error is at least half the spread). The confidences are the
+# solver's per-point weights, whose common scale cancels in the Gauss-Newton step: what they
+# change for the pose is their relative error. A barely trained confidence is ~1 everywhere with
+# a spread of 1e-3, under one INT8 step of a [0, 1] output (1/255), so a spread bound would test
+# the CPU's rounding (AVX2 kernels err by 0.003, AVX-512 VNNI ones by less), not the export;
+# 1 % of the weight is 2.5 INT8 steps, and a calibration off by 10x misses it.
 FP16_REL = 1e-3
 INT8_SPREAD = 0.1
+INT8_WEIGHT_REL = 0.01
 
 
 def _stage_inputs(model_dir, seq_dir, frames: int = 3) -> dict[str, list[dict]]:
@@ -241,7 +247,11 @@ def test_reduced_precision_exports(small_model, small_synth, tmp_path, precision
         print(f"{precision} {name}: max err {err:.3g}, |fp32| {mag:.3g}, spread {spread:.3g}")
         if name.startswith("flowpose/") and not any(k in name for k in ("flow_l", "confidence")):
             continue  # poses: checked below against the fp32 trajectory, in metres and degrees
-        if err > (FP16_REL * mag if precision == "fp16" else INT8_SPREAD * spread):
+        if precision == "fp16":
+            bound = FP16_REL * mag
+        else:
+            bound = INT8_WEIGHT_REL * mag if "confidence" in name else INT8_SPREAD * spread
+        if err > bound:
             bad.append(name)
     assert not bad, bad
     # the trajectory against fp32's, as a user sees it
