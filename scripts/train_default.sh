@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduces the bundled default model (d3lvo_deploy/default_model), the paper's MLP pose head
-# on the same data (the head comparison in the README), the rgb ablation, and their evaluation
-# beside the no-learning direct tracker on the held-out drives.
+# on the same data (the head comparison in docs/evaluation.md), the rgb ablation, and their
+# evaluation beside the no-learning direct tracker on the held-out drives.
 # Data: synthetic sequences from `d3lvo synth`, motion replayed from the real KITTI GT 00-08
 # (training) and 09-10 (held-out, other seeds). On 2 CPU cores: data ~16 min, then the trainings
 # below side by side, ~100 min in all; sequences already in $OUT/data are reused.
@@ -34,11 +34,12 @@ val=(--val "$OUT/data/heldout_09")
 common=(--preset small --batch-size 4 --lr 5e-4 --ckpt-every 50 --seed 0 --workers 0)
 resume() { [ "${RESUME:-0}" = 1 ] && [ -f "$1" ] && echo --resume "$1" || true; }
 
-# Side by side, as they were run for the bundled model (budgets differ because the runs were
-# started at different times of one session; the comparison favours the MLP head, which had more):
+# Side by side, as they were run for the bundled model (the budgets differ; the comparison
+# favours the MLP head, which has more steps than the default's first 1,000):
 # - the paper's MLP head, 1,600 steps validated every 400, then the rgb ablation (no depth, so
-#   the MLP head), 1,500 steps validated every 300, one thread each (the rgb run was stopped at
-#   step 1,050 to give the default's training both cores; its best validated step was 600);
+#   the MLP head), 1,500 steps validated every 300, one thread each (the rgb run that produced
+#   the figures in docs/evaluation.md was stopped at step 1,050 to give the default's training
+#   both cores; its best validated step was 600);
 # - the default, the Gauss-Newton head with the solver on LiDAR cells, 1,000 steps validated
 #   every 250, two threads.
 ( export OMP_NUM_THREADS=1
@@ -50,11 +51,12 @@ OMP_NUM_THREADS=2 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.p
   --val-every 250 --set gn_lidar_pool=stride $(resume "$OUT/default.pt") &
 wait
 
-# Session 5 continued the default from step 1,000 (checkpoints/default_step1000.pt) on a schedule
-# of 2,500 steps, validated every 300. Steps 1,000-2,050 kept the solver's LiDAR cells on the cell
-# pixel (gn_lidar_pool=stride); the step-1,800 weights scored better on 09-motion with the closest
-# return within half a cell (gn_lidar_pool=nearest, README), so steps 2,050-2,500 train with that,
-# which is what ships. Two threads, nothing else running: ~1 s per step.
+# The default then continues from step 1,000 on a schedule of 2,500 steps, validated every 300.
+# Steps 1,000-2,050 keep the solver's LiDAR cells on the cell pixel (gn_lidar_pool=stride); the
+# step-1,800 weights score better on 09-motion with the closest return within half a cell
+# (gn_lidar_pool=nearest, docs/model-card.md), so steps 2,050-2,500 train with that, which is what
+# ships. Two threads, nothing else running: ~1 s per step. checkpoints/default_step2500.pt is the
+# full training state at step 2,500, to continue from.
 if [ ! -f "$OUT/default.pt" ] || [ "$(.venv/bin/python -c "import torch; print(torch.load('$OUT/default.pt', weights_only=False)['step'])")" -lt 2050 ]; then
   OMP_NUM_THREADS=2 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.pt" "${common[@]}" --steps 2500 \
     --stop-at 2050 --val-every 300 --set gn_lidar_pool=stride --resume "$OUT/default.pt"
@@ -69,7 +71,8 @@ OMP_NUM_THREADS=2 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.p
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
 
-# the README's held-out table: network, MLP head and the direct tracker, through `d3lvo run`
+# the held-out table of docs/evaluation.md: network, MLP head, rgb ablation and the direct tracker,
+# through `d3lvo run` (which scores each run against the poses.txt beside the sequence)
 for s in 09 10; do
   "$D3LVO" run --seq-dir "$OUT/data/heldout_$s" --out "$OUT/eval/default_$s.txt"
   "$D3LVO" run --seq-dir "$OUT/data/heldout_$s" --onnx "$OUT/mlp_onnx" --out "$OUT/eval/mlp_$s.txt"
