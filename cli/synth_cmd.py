@@ -31,8 +31,16 @@ def synth_command(
     size: str = typer.Option("1241x376", "--size", help="Image size WxH (intrinsics scale with it)."),
     depth: bool = typer.Option(True, "--depth/--no-depth", help="Also write the renderer's dense depth (depth_2/)."),
     resume: bool = typer.Option(True, "--resume/--overwrite", help="Keep frames already written by an interrupted run."),
+    traffic: float = typer.Option(0.0, "--traffic", help="Moving vehicles per 100 m of road (lead car, overtaking, "
+                                  "overtaken, oncoming, crossing), with motion_2/ masks and the true flow_2/; "
+                                  "0 renders a static street."),
+    sensor_effects: bool = typer.Option(False, "--sensor-effects/--clean", help="Per-frame exposure changes, "
+                                        "vignetting, shot noise and LiDAR dropout on dark or far surfaces."),
 ) -> None:
-    """Render a synthetic KITTI-format sequence: image_2, velodyne, calib, times and GT poses."""
+    """Render a synthetic KITTI-format sequence: image_2, velodyne, calib, times and GT poses.
+
+    Example: d3lvo synth --out runs/data/traffic_09 --frames 200 --size 620x188 --traffic 3 --sensor-effects
+    """
     from d3lvo_deploy.extras import require
 
     require("embreex", what="d3lvo synth")
@@ -43,7 +51,7 @@ def synth_command(
         raise D3LVOInputError(motion_from, "trajectory to replay not found")
     cfg = SynthConfig(frames=frames, seed=seed, width=width, height=height,
                       motion_from=str(motion_from) if motion_from else None, motion_start=motion_start,
-                      write_depth=depth)
+                      write_depth=depth, traffic=traffic, sensor_effects=sensor_effects)
     t0 = time.perf_counter()
     with frame_progress() as bar:
         task = bar.add_task("synth", total=frames, rate="")

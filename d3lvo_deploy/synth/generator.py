@@ -2,7 +2,10 @@
 
 Output: image_2/*.png, velodyne/*.bin, calib.txt, times.txt, poses.txt (cam0, first pose identity)
 and depth_2/*.png, the renderer's z-buffer as KITTI depth-completion PNGs (uint16, metres * 256,
-0 = sky), usable as dense ground truth. Each frame is written as soon as it is rendered and is a
+0 = sky), usable as dense ground truth. With traffic, also motion_2/*.png (255 where a pixel
+sees a vehicle that moves between this frame and the next) and flow_2/*.png, the true optical
+flow of image_2 from each frame to the next (ego motion and vehicle motion), in KITTI's flow
+format (uint16 u, v as 64 x flow + 2^15, and a valid flag; none for the last frame). Each frame is written as soon as it is rendered and is a
 pure function of (seed, frame), so an interrupted run resumes where it stopped with identical data.
 """
 
@@ -21,9 +24,10 @@ from ..errors import D3LVOInputError
 from ..poses import write_poses
 from .motion import DriveConfig, replay_gt, synthetic_drive
 from .raycast import RayCaster
-from .sensors import LidarConfig, Scene, cam2_pose, render_camera, scan_lidar, velo_pose
+from .sensors import Exposure, LidarConfig, Scene, cam2_pose, render_camera, scan_lidar, velo_pose
 from .shading import noise_texture
-from .world import build_world
+from .traffic import Vehicle, plan_traffic, point_motion, world_at
+from .world import build_path, build_world
 
 GENERATOR_VERSION = 1
 
@@ -57,6 +61,17 @@ class SynthConfig:
     write_depth: bool = True
     lidar: LidarConfig = field(default_factory=LidarConfig)
     drive: DriveConfig = field(default_factory=DriveConfig)
+    traffic: float = 0.0  # moving vehicles per 100 m of driven road
+    sensor_effects: bool = False  # exposure changes, vignetting, shot noise, dark/far LiDAR dropout
+
+    def meta(self) -> dict:
+        """synth.json: the settings, without the traffic and sensor keys at their defaults, so a
+        static drive's folder reads the same as before those options existed."""
+        d = {"generator_version": GENERATOR_VERSION, **asdict(self)}
+        for k in ("traffic", "sensor_effects"):
+            if not d[k]:
+                del d[k]
+        return d
 
 
 def make_poses(cfg: SynthConfig) -> np.ndarray:
@@ -74,10 +89,12 @@ def make_scene(poses: np.ndarray, seed: int) -> Scene:
     return Scene(RayCaster(world["vertices"], world["faces"]), world, style, noise_texture(seed), sun)
 
 
-def _frame_done(out: Path, name: str, cfg: SynthConfig) -> bool:
+def _frame_done(out: Path, name: str, cfg: SynthConfig, last: bool) -> bool:
     files = [out / "image_2" / f"{name}.png", out / "velodyne" / f"{name}.bin"]
     if cfg.write_depth:
         files.append(out / "depth_2" / f"{name}.png")
+    if cfg.traffic:
+        files += [out / "motion_2" / f"{name}.png"] + ([] if last else [out / "flow_2" / f"{name}.png"])
     return all(f.is_file() and f.stat().st_size > 0 for f in files)
 
 
@@ -95,6 +112,53 @@ def _png(array: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def sensor_exposures(cfg: SynthConfig) -> list[Exposure]:
+    """Per-frame camera effects from the seed: auto-exposure gain drifting as a random walk in log
+    space (within 0.6x-1.5x) with occasional jumps (entering shade, a tunnel, sun glare), one
+    vignetting strength and shot noise for the drive."""
+    rng = np.random.default_rng([cfg.seed, 4])
+    steps = rng.normal(0.0, 0.03, cfg.frames) + (rng.uniform(size=cfg.frames) < 0.03) * rng.normal(0.0, 0.2, cfg.frames)
+    log_gain = np.clip(np.cumsum(steps), np.log(0.6), np.log(1.5))
+    vignette, shot = float(rng.uniform(0.2, 0.45)), float(rng.uniform(0.3, 1.0))
+    return [Exposure(float(np.exp(g)), vignette, shot) for g in log_gain]
+
+
+def _moves(v: Vehicle, i: int) -> bool:
+    """Whether vehicle v moves between frame i and the next (the previous, at the last frame)."""
+    j = i + 1 if i + 1 < len(v.poses) else i - 1
+    return bool(np.linalg.norm(v.poses[j][:3, 3] - v.poses[i][:3, 3]) > 0.01)
+
+
+def true_flow(depth: np.ndarray, owner: np.ndarray, vehicles: list[Vehicle], K: np.ndarray, T_w_c0: np.ndarray,
+              T_w_c1: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """(H,W,2) image_2 flow from this frame to the next and its validity: every pixel's surface
+    point moved as its owner moves (static: not at all), projected with the next camera pose."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    X = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) * depth[..., None]
+    Xw = X.reshape(-1, 3) @ T_w_c0[:3, :3].T + T_w_c0[:3, 3]
+    Xw = point_motion(vehicles, owner.reshape(-1), Xw, frame, frame + 1)
+    T = np.linalg.inv(T_w_c1)
+    Xc = Xw @ T[:3, :3].T + T[:3, 3]
+    valid = (depth.reshape(-1) > 0) & (Xc[:, 2] > 0.1)
+    z = np.where(valid, Xc[:, 2], 1.0)
+    flow = np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2] - u.reshape(-1), K[1, 1] * Xc[:, 1] / z + K[1, 2] - v.reshape(-1)], 1)
+    flow[~valid] = 0.0
+    return flow.reshape(h, w, 2), valid.reshape(h, w)
+
+
+def encode_kitti_flow(flow: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """KITTI flow PNG channels (u, v, valid), as BGR for cv2.imwrite: uint16 64 x flow + 2^15."""
+    enc = np.clip(np.round(flow * 64.0 + 32768.0), 0, 65535).astype(np.uint16)
+    return np.dstack([valid.astype(np.uint16), enc[..., 1], enc[..., 0]])
+
+
+def decode_kitti_flow(png_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of encode_kitti_flow for an image read with cv2.IMREAD_UNCHANGED."""
+    flow = (np.dstack([png_bgr[..., 2], png_bgr[..., 1]]).astype(np.float64) - 32768.0) / 64.0
+    return flow, png_bgr[..., 0] > 0
+
+
 def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
              resume: bool = True) -> Path:
     out = Path(out)
@@ -102,12 +166,15 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
         raise D3LVOInputError(None, "--frames must be at least 2")
     if cfg.width < 64 or cfg.height < 32:
         raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too small")
+    if cfg.traffic < 0:
+        raise D3LVOInputError(None, f"--traffic must be 0 or more vehicles per 100 m, not {cfg.traffic}")
     try:
-        for d in ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()):
+        for d in ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()) + \
+                (("motion_2", "flow_2") if cfg.traffic else ()):
             (out / d).mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out, f"cannot create the output folder ({e.strerror})") from None
-    meta = {"generator_version": GENERATOR_VERSION, **asdict(cfg)}
+    meta = cfg.meta()
     meta_path = out / "synth.json"
     if meta_path.is_file() and resume:
         old = json.loads(meta_path.read_text())
@@ -121,13 +188,32 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
     write_poses(out / "poses.txt", poses)
 
     scene = make_scene(poses, cfg.seed)
+    vehicles = plan_traffic(build_path(poses), scene.style, poses, cfg.traffic,
+                            np.random.default_rng([cfg.seed, 3])) if cfg.traffic else []
+    exposures = sensor_exposures(cfg) if cfg.sensor_effects else [None] * cfg.frames
     K = calib.K2
     for i in range(cfg.frames):
         name = f"{i:06d}"
-        if not (resume and _frame_done(out, name, cfg)):
+        if not (resume and _frame_done(out, name, cfg, i == cfg.frames - 1)):
             rng = np.random.default_rng([cfg.seed, 2, i])
-            img, depth = render_camera(scene, K, cam2_pose(poses[i], calib), cfg.width, cfg.height, rng)
-            scan = scan_lidar(scene, velo_pose(poses[i], calib), cfg.lidar, rng)
+            frame_scene, owner = scene, None
+            if vehicles:
+                world, owner = world_at(scene.world, vehicles, i)
+                frame_scene = Scene(RayCaster(world["vertices"], world["faces"]), world, scene.style, scene.tex,
+                                    scene.sun)
+            hits: dict = {}
+            img, depth = render_camera(frame_scene, K, cam2_pose(poses[i], calib), cfg.width, cfg.height, rng,
+                                       exposure=exposures[i], hits=hits)
+            scan = scan_lidar(frame_scene, velo_pose(poses[i], calib), cfg.lidar, rng,
+                              weak_dropout=0.3 if cfg.sensor_effects else 0.0)
+            if vehicles:
+                pix_owner = np.where(hits["prim"] >= 0, owner[np.maximum(hits["prim"], 0)], -1)
+                moving = np.array([_moves(v, i) for v in vehicles] + [False])  # index -1: static
+                _write_atomic(out / "motion_2" / f"{name}.png", _png(np.where(moving[pix_owner], 255, 0).astype(np.uint8)))
+                if i + 1 < cfg.frames:
+                    flow, valid = true_flow(depth, pix_owner, vehicles, K, cam2_pose(poses[i], calib),
+                                            cam2_pose(poses[i + 1], calib), i)
+                    _write_atomic(out / "flow_2" / f"{name}.png", _png(encode_kitti_flow(flow, valid)))
             _write_atomic(out / "velodyne" / f"{name}.bin", scan.tobytes())
             if cfg.write_depth:
                 d16 = np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)

@@ -54,9 +54,22 @@ def _surface(scene: Scene, origins: np.ndarray, dirs: np.ndarray):
     return h, ok, prim, uv, n, pts
 
 
+@dataclass(frozen=True)
+class Exposure:
+    """What a real camera adds to the scene's radiance in one frame: auto-exposure gain, lens
+    vignetting (1 - strength r^2, r = 1 at the image corner) and photon shot noise (variance
+    `shot` x the signal in 8-bit units) on top of the read noise."""
+
+    gain: float = 1.0
+    vignette: float = 0.0
+    shot: float = 0.0
+
+
 def render_camera(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
-                  rng: np.random.Generator, noise_sigma: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """(H,W,3) uint8 RGB image and (H,W) float32 z-depth (0 where the ray saw sky)."""
+                  rng: np.random.Generator, noise_sigma: float = 2.0, exposure: Exposure | None = None,
+                  hits: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(H,W,3) uint8 RGB image and (H,W) float32 z-depth (0 where the ray saw sky). `hits`, when
+    given, receives each pixel's triangle ("prim", -1 for sky)."""
     jj, ii = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     d_cam = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1).reshape(-1, 3)
     R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
@@ -73,13 +86,24 @@ def render_camera(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: i
     img = np.empty((width * height, 3), dtype=np.float32)
     img[ok] = alb * light[:, None]
     img[~ok] = sky(dirs[~ok], scene.tex)
-    img = img * 255.0 + rng.normal(0.0, noise_sigma, img.shape)
+    if exposure is None:
+        img = img * 255.0 + rng.normal(0.0, noise_sigma, img.shape)
+    else:
+        r2 = (((jj - width / 2) / (width / 2)) ** 2 + ((ii - height / 2) / (height / 2)) ** 2).reshape(-1, 1) / 2
+        img = img * (255.0 * exposure.gain) * (1.0 - exposure.vignette * r2)
+        sigma = np.sqrt(noise_sigma ** 2 + exposure.shot * np.clip(img, 0.0, 255.0))
+        img = img + rng.normal(0.0, 1.0, img.shape) * sigma
+    if hits is not None:
+        hits["prim"] = h.prim.reshape(height, width)
     depth = np.where(ok, h.t, 0.0).astype(np.float32).reshape(height, width)
     return np.clip(img, 0, 255).astype(np.uint8).reshape(height, width, 3), depth
 
 
-def scan_lidar(scene: Scene, T_world_velo: np.ndarray, cfg: LidarConfig, rng: np.random.Generator) -> np.ndarray:
-    """(N,4) float32 points in the LiDAR frame (x fwd, y left, z up) with reflectance in [0,1]."""
+def scan_lidar(scene: Scene, T_world_velo: np.ndarray, cfg: LidarConfig, rng: np.random.Generator,
+               weak_dropout: float = 0.0) -> np.ndarray:
+    """(N,4) float32 points in the LiDAR frame (x fwd, y left, z up) with reflectance in [0,1].
+    `weak_dropout`: the most extra dropout of weak returns, reached by black surfaces and at
+    `max_range` (each half of it), as a real sensor loses dark and far returns first."""
     el = cfg.elevations()
     az = np.radians(np.arange(0.0, 360.0, cfg.azimuth_res_deg))
     E, A = np.meshgrid(el, az, indexing="ij")
@@ -93,6 +117,9 @@ def scan_lidar(scene: Scene, T_world_velo: np.ndarray, cfg: LidarConfig, rng: np
                  scene.tex, scene.style)
     cos = np.abs((n * (d_velo[ok] @ R.T)).sum(1))
     refl = np.clip(alb.mean(1) * (0.3 + 0.7 * cos), 0.0, 1.0)
+    if weak_dropout > 0:
+        weak = 0.5 * (1.0 - refl) ** 2 + 0.5 * (rng_m / cfg.max_range) ** 2
+        keep &= rng.uniform(size=len(rng_m)) >= weak_dropout * weak
     xyz = d_velo[ok] * rng_m[:, None]
     return np.concatenate([xyz, refl[:, None]], 1)[keep].astype(np.float32)
 

@@ -1,0 +1,158 @@
+"""Traffic and sensor effects in the synthetic world: movers agree between LiDAR and camera, the
+written flow is the true one, and the camera effects are the ones stated."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from d3lvo_deploy.projection import project_points
+from d3lvo_deploy.sequence import KittiSequence
+
+pytest.importorskip("embreex")
+
+from d3lvo_deploy.synth.generator import (SynthConfig, decode_kitti_flow, encode_kitti_flow, generate,  # noqa: E402
+                                          make_poses, make_scene)
+from d3lvo_deploy.synth.sensors import Exposure, LidarConfig, cam2_pose, render_camera, scan_lidar, velo_pose  # noqa: E402
+from d3lvo_deploy.synth.traffic import KINDS, plan_traffic  # noqa: E402
+from d3lvo_deploy.synth.world import build_path  # noqa: E402
+
+SIZE = (416, 128)
+
+
+@pytest.fixture(scope="session")
+def traffic_clip(tmp_path_factory) -> Path:
+    """8 frames, 6 vehicles per 100 m, LiDAR without range noise or dropout (geometry checks are exact)."""
+    out = tmp_path_factory.mktemp("traffic") / "seq"
+    return generate(out, SynthConfig(frames=8, seed=21, width=SIZE[0], height=SIZE[1], traffic=6.0,
+                                     lidar=LidarConfig(noise_m=0.0, dropout=0.0)))
+
+
+def _mask(seq_dir: Path, i: int) -> np.ndarray:
+    return cv2.imread(str(seq_dir / "motion_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
+
+
+def test_every_kind_of_vehicle_is_planned():
+    cfg = SynthConfig(frames=60, seed=3, traffic=4.0)
+    poses = make_poses(cfg)
+    scene = make_scene(poses, cfg.seed)
+    vehicles = plan_traffic(build_path(poses), scene.style, poses, cfg.traffic, np.random.default_rng(0))
+    assert {v.kind for v in vehicles} == set(KINDS)
+    assert [v.kind for v in vehicles].count("lead") == 1
+    # the lead car keeps its distance to the camera: it moves exactly as the camera does along the road
+    lead = next(v for v in vehicles if v.kind == "lead")
+    gap = np.linalg.norm(lead.poses[:, :3, 3] - poses[:, :3, 3], axis=1)
+    assert gap.max() - gap.min() < 0.5
+
+
+def test_static_drive_writes_no_traffic_files(small_synth):
+    assert not (small_synth / "motion_2").exists() and not (small_synth / "flow_2").exists()
+    assert "traffic" not in (small_synth / "synth.json").read_text()
+
+
+def test_movers_scan_points_land_on_their_own_pixels(traffic_clip):
+    """LiDAR returns that project onto motion-mask pixels have the depth the camera rendered there:
+    both sensors saw each vehicle at the same pose (a LiDAR one frame late would be ~1 m off)."""
+    seq = KittiSequence.open(traffic_clip)
+    diffs, masked = [], 0
+    for i in range(len(seq)):
+        mask = _mask(traffic_clip, i)
+        depth = cv2.imread(str(traffic_clip / "depth_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) / 256.0
+        c, r, z = project_points(seq.scan(i), seq.calib.P_velo_to_image2, SIZE[0], SIZE[1])
+        on = mask[r, c]
+        masked += int(mask.sum())
+        diffs.append(np.abs(z[on] - depth[r[on], c[on]]))
+    d = np.concatenate(diffs)
+    print(f"{len(d)} returns on moving vehicles, {masked} masked pixels, median |z - depth| {np.median(d):.4f} m")
+    assert masked > 500 and len(d) > 100
+    assert np.median(d) < 0.02 and np.mean(d < 0.1) > 0.8
+
+
+def test_true_flow_is_rigid_on_static_pixels_and_moves_with_the_vehicles(traffic_clip):
+    """Static pixels: the flow equals the rigid flow recomputed here from depth_2, poses and P2.
+    Vehicles: warping frame i+1 back with the written flow matches frame i better than the rigid
+    flow does (which is what an ego-motion-only flow would predict)."""
+    seq = KittiSequence.open(traffic_clip)
+    K = seq.calib.K2
+    T02 = seq.calib.T_cam0_cam2
+    v, u = np.mgrid[0:SIZE[1], 0:SIZE[0]].astype(np.float64)
+    static_err, mover_written, mover_rigid = [], [], []
+    for i in range(len(seq) - 1):
+        png = cv2.imread(str(traffic_clip / "flow_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        flow, valid = decode_kitti_flow(png)
+        depth = cv2.imread(str(traffic_clip / "depth_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) / 256.0
+        mask = _mask(traffic_clip, i)
+        # rigid flow: back-project with depth, move by the camera's motion, project
+        A = np.linalg.inv(seq.ground_truth.poses[i + 1] @ T02) @ (seq.ground_truth.poses[i] @ T02)
+        X = np.stack([(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, depth], -1)
+        Y = X @ A[:3, :3].T + A[:3, 3]
+        rigid = np.stack([K[0, 0] * Y[..., 0] / Y[..., 2] + K[0, 2] - u, K[1, 1] * Y[..., 1] / Y[..., 2] + K[1, 2] - v], -1)
+        ok = valid & (depth > 0) & ~mask
+        static_err.append(np.linalg.norm(flow[ok] - rigid[ok], axis=1))
+        img0 = cv2.imread(str(traffic_clip / "image_2" / f"{i:06d}.png")).astype(np.float32)
+        img1 = cv2.imread(str(traffic_clip / "image_2" / f"{i + 1:06d}.png")).astype(np.float32)
+        for f, out in ((flow, mover_written), (rigid, mover_rigid)):
+            warped = cv2.remap(img1, (u + f[..., 0]).astype(np.float32), (v + f[..., 1]).astype(np.float32),
+                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            out.append(np.abs(warped - img0).mean(2)[mask & valid])
+    s = np.concatenate(static_err)
+    written, rigid_e = np.concatenate(mover_written), np.concatenate(mover_rigid)
+    print(f"static: |flow - rigid| max {s.max():.4f} px; movers ({len(written)} px): photometric error (75th "
+          f"percentile) {np.percentile(written, 75):.2f} with the written flow, {np.percentile(rigid_e, 75):.2f} with "
+          f"the rigid flow")
+    # the format's 1/64 px step and depth_2's 1/256 m step bound the difference on static pixels
+    assert s.max() < 0.05
+    # a percentile, not the mean: pixels that are occluded in frame i+1 (thin roof edges, one vehicle
+    # behind another) match with no flow, and their errors swamp a mean
+    assert len(written) > 500 and np.percentile(written, 75) < 0.5 * np.percentile(rigid_e, 75)
+
+
+def test_kitti_flow_format_by_hand():
+    """64 x flow + 2^15: (1.5, -2.25) -> 32864, 32624; the valid flag rides in the third channel."""
+    enc = encode_kitti_flow(np.array([[[1.5, -2.25]]]), np.array([[True]]))
+    assert enc.tolist() == [[[1, 32624, 32864]]]  # BGR: valid, v, u
+    flow, valid = decode_kitti_flow(enc)
+    assert flow.tolist() == [[[1.5, -2.25]]] and valid.all()
+
+
+def test_exposure_gain_and_vignetting_are_as_stated():
+    """Gain 1.3 scales every unclipped pixel by 1.3; vignetting 0.4 darkens the corner to 0.6 of
+    the centre's value (same scene, same noise draw, noise off)."""
+    cfg = SynthConfig(frames=2, seed=4, width=160, height=64)
+    poses = make_poses(cfg)
+    scene = make_scene(poses, cfg.seed)
+    from d3lvo_deploy.synth.generator import kitti_calib
+
+    calib = kitti_calib(160, 64)
+    T = cam2_pose(poses[0], calib)
+
+    def render(e: Exposure) -> np.ndarray:
+        img, _ = render_camera(scene, calib.K2, T, 160, 64, np.random.default_rng(0), noise_sigma=0.0, exposure=e)
+        return img.astype(np.float64)
+
+    base, bright = render(Exposure()), render(Exposure(gain=1.3))
+    ok = (base > 20) & (bright < 250)
+    assert np.abs(bright[ok] / base[ok] - 1.3).max() < 0.05
+    flat_scene_ratio = render(Exposure(vignette=0.4)) / np.maximum(base, 1)
+    assert abs(flat_scene_ratio[0, 0].mean() - 0.6) < 0.05 and abs(flat_scene_ratio[32, 80].mean() - 1.0) < 0.02
+
+
+def test_weak_returns_drop_out_first():
+    """With the dark/far dropout, far returns are lost more often than near ones."""
+    cfg = SynthConfig(frames=2, seed=4, width=160, height=64)
+    poses = make_poses(cfg)
+    scene = make_scene(poses, cfg.seed)
+    from d3lvo_deploy.synth.generator import kitti_calib
+
+    T = velo_pose(poses[0], kitti_calib(160, 64))
+    lidar = LidarConfig(noise_m=0.0, dropout=0.0)
+    full = scan_lidar(scene, T, lidar, np.random.default_rng(0))
+    weak = scan_lidar(scene, T, lidar, np.random.default_rng(0), weak_dropout=1.0)
+    r_full, r_weak = np.linalg.norm(full[:, :3], axis=1), np.linalg.norm(weak[:, :3], axis=1)
+    near = (r_weak < 15).sum() / max((r_full < 15).sum(), 1)
+    far = (r_weak > 40).sum() / max((r_full > 40).sum(), 1)
+    print(f"kept near {near:.2f}, far {far:.2f}")
+    assert far < near - 0.1
