@@ -54,6 +54,8 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
         if name not in stages:
             raise D3LVOInputError(path, f"lists no {name} stage")
     for name, st in stages.items():
+        if not isinstance(st, dict) or not isinstance(st.get("file"), str) or not isinstance(st.get("sha256"), str):
+            raise D3LVOInputError(path, f"stage {name!r} has no file name or no sha256: re-export with `d3lvo export`")
         f = model_dir / st["file"]
         if not f.is_file():
             raise D3LVOInputError(f, f"{name} model listed in the manifest is missing")

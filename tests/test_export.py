@@ -112,11 +112,24 @@ def test_parity_at_paper_resolution(tmp_path):
 
 def test_tampered_and_mismatched(exported, tmp_path):
     ck, out, _ = exported
-    bad = tmp_path / "bad"
+    stages = load_manifest(out)["stages"]
+    assert set(stages) == {"completion", "encoder", "flowpose"}
+    for name, st in stages.items():  # every file the manifest lists is checked, not only one
+        bad = tmp_path / f"bad_{name}"
+        shutil.copytree(out, bad)
+        with open(bad / st["file"], "ab") as fh:
+            fh.write(b"\0")
+        with pytest.raises(D3LVOInputError, match=f"{st['file']}.*sha256"):
+            StageModel(bad)
+        (bad / st["file"]).unlink()
+        with pytest.raises(D3LVOInputError, match=f"{st['file']}.*missing"):
+            StageModel(bad)
+    bad = tmp_path / "no_hash"
     shutil.copytree(out, bad)
-    with open(bad / "encoder.onnx", "ab") as fh:
-        fh.write(b"\0")
-    with pytest.raises(D3LVOInputError, match="encoder.onnx.*sha256"):
+    m = json.loads((bad / "manifest.json").read_text())
+    del m["stages"]["flowpose"]["sha256"]
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(D3LVOInputError, match="flowpose.*no sha256"):
         StageModel(bad)
     other, _ = _ckpt(tmp_path, name="other.pt", mode="rgb")
     with pytest.raises(D3LVOInputError, match="another model config"):

@@ -41,11 +41,26 @@ def test_onnx_trajectory_equals_torch(small_model, small_synth, tmp_path):
 
 
 def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
+    """Each pose is the previous one times the pair's cam0 motion (KITTI's T_0k = T_0,k-1 T_k-1,k),
+    where the cam0 motion is the engine's image_2 motion A moved through the rig by hand:
+    x_cam2 = x_cam0 + b with b = K2^-1 p4 from P2's fourth column, so T = [I|-b] A [I|b]."""
     _, onnx_dir = small_model
     seq = KittiSequence.open(small_synth)
     run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "p.txt"))
     odo = Odometry(onnx_dir, small_synth / "calib.txt")
-    poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))]
+    odo.keep_outputs = True
+    P2 = seq.calib.P2
+    b = np.linalg.inv(P2[:, :3]) @ P2[:, 3]
+    to2, from2 = np.eye(4), np.eye(4)
+    to2[:3, 3], from2[:3, 3] = b, -b
+    expect = [np.eye(4)]
+    poses = [odo.step(seq.image(0), seq.scan(0))]
+    for i in range(1, len(seq)):
+        poses.append(odo.step(seq.image(i), seq.scan(i)))
+        A = odo.last["flowpose"]["matrix"][0].astype(np.float64)
+        expect.append(expect[-1] @ (from2 @ A @ to2))
+    assert max(np.degrees(np.arccos(np.clip((np.trace(p[:3, :3]) - 1) / 2, -1, 1))) for p in expect) > 0.01
+    np.testing.assert_allclose(np.array(poses), np.array(expect), atol=1e-9)
     np.testing.assert_array_equal(np.array(poses)[:, :3], read_poses(tmp_path / "p.txt").poses[:, :3])
     odo.reset()
     np.testing.assert_array_equal(odo.step(seq.image(3), seq.scan(3)), np.eye(4))
@@ -98,19 +113,52 @@ def test_killed_run_resumes_to_the_same_file(small_model, small_synth, tmp_path)
     assert out.read_text() == full.read_text()
 
 
+def _sliced_copy(seq_dir, out, start: int, end: int):
+    """Frames start..end-1 of a KITTI folder as a sequence of their own (renumbered from 0)."""
+    import shutil
+
+    for sub, ext in (("image_2", "png"), ("velodyne", "bin")):
+        (out / sub).mkdir(parents=True)
+        for k, i in enumerate(range(start, end)):
+            shutil.copy(seq_dir / sub / f"{i:06d}.{ext}", out / sub / f"{k:06d}.{ext}")
+    shutil.copy(seq_dir / "calib.txt", out / "calib.txt")
+    times = (seq_dir / "times.txt").read_text().split()[start:end]
+    (out / "times.txt").write_text("\n".join(times) + "\n")
+    return out
+
+
+def _tum_by_hand(path) -> tuple[np.ndarray, np.ndarray]:
+    """TUM lines 'stamp tx ty tz qx qy qz qw' -> stamps and 4x4 poses, with the textbook
+    unit-quaternion rotation matrix (written here, not the project's reader)."""
+    stamps, poses = [], []
+    for line in path.read_text().splitlines():
+        s, tx, ty, tz, x, y, z, w = map(float, line.split())
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, (tx, ty, tz)
+        stamps.append(s)
+        poses.append(T)
+    return np.array(stamps), np.array(poses)
+
+
 def test_frame_range_and_tum(small_model, small_synth, tmp_path):
+    """--start 2 --end 5 in TUM is a run of its own from frame 2 (the Gauss-Newton head starts its
+    first pair from rest): the same poses as a KITTI-format run over a folder holding only frames
+    2-4, and the stamps of those frames; resuming that range after frame 3 changes nothing."""
     _, onnx_dir = small_model
     seq = KittiSequence.open(small_synth)
-    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "full.txt"))
     run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "r.tum", fmt="tum", start=2, end=5))
-    t = read_poses(tmp_path / "r.tum")
-    assert len(t) == 3
-    np.testing.assert_allclose(t.timestamps, [0.2, 0.3, 0.4], atol=1e-6)
-    # a range is a run of its own from its first frame (the Gauss-Newton head starts its first
-    # pair from rest): the streaming API fed frames 2..4 gives the same poses
-    odo = Odometry(onnx_dir, seq.calib)
-    expect = np.stack([odo.step(seq.image(i), seq.scan(i)) for i in range(2, 5)])
-    np.testing.assert_allclose(t.poses, expect, atol=1e-9)
+    stamps, tum = _tum_by_hand(tmp_path / "r.tum")
+    np.testing.assert_allclose(stamps, [0.2, 0.3, 0.4], atol=1e-6)
+    sliced = KittiSequence.open(_sliced_copy(small_synth, tmp_path / "sliced", 2, 5))
+    run_sequence(sliced, onnx_dir, RunConfig(out=tmp_path / "sliced.txt"))
+    kitti = np.loadtxt(tmp_path / "sliced.txt").reshape(-1, 3, 4)
+    np.testing.assert_allclose(tum[:, :3], kitti, atol=1e-6)  # TUM prints 6-9 digits
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "part.txt", start=2, end=4))
+    run_sequence(seq, onnx_dir, RunConfig(out=tmp_path / "part.txt", start=2, end=5, resume=True))
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "part.txt").reshape(-1, 3, 4), kitti, atol=1e-9)
 
 
 def test_scan_fallbacks_warn(small_model, small_synth):
