@@ -5,7 +5,9 @@ mutation counts as caught when at least one of them fails. Nothing in the checko
     .venv/bin/python scripts/mutation_audit.py            # all mutations (~15 min on 2 cores)
     .venv/bin/python scripts/mutation_audit.py 1 4        # some of them
 
-The seven are the ones issue 18 found passing the suite; the README lists which test catches each.
+Each is a one-line bug a developer could plausibly make, in I/O, calibration, geometry, the
+solver, export, the runtime, resume, evaluation, the synthetic world or the bench;
+docs/testing.md lists which test catches each.
 """
 
 from __future__ import annotations
@@ -49,9 +51,8 @@ MUTATIONS = [
              ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
     Mutation("an untrained network shipped as the bundled model", "", "", "",
              ("tests/test_default_model.py",), script=UNTRAINED),
-    Mutation("INT8 calibrated on inputs scaled by 1e-3", "export/quantize.py",
-             'inv = sparse = pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)',
-             'inv = sparse = 1e-3 * pre.invdepth_input(seq.scan(i) if model.depth_input != "none" else None)',
+    Mutation("INT8 calibrated on RGB scaled by 1e-3 (activation ranges at the wrong scale)", "export/quantize.py",
+             "            rgb = pre.rgb_input(seq.image(i))", "            rgb = 1e-3 * pre.rgb_input(seq.image(i))",
              ("tests/test_export.py::test_reduced_precision_exports",)),
     Mutation("training --resume that discards weights, loss balance and optimizer state", "models/train.py",
              '        model.load_state_dict(ck["model"])\n        criterion.load_state_dict(ck["loss"])\n'
@@ -65,6 +66,46 @@ MUTATIONS = [
     Mutation("the pose head ignores its input (returns its start pose: a constant motion model)",
              "models/pose_gn.py", "        for _ in range(self.cfg.gn_iters):", "        for _ in range(0):",
              ("tests/test_training.py::test_short_training_beats_the_baselines",)),
+    Mutation("pyrDown levels given an area-resize principal point (x -> (x + 0.5) / 2 - 0.5)", "d3lvo_deploy/direct.py",
+             "    Kl[:2] *= 0.5 ** level\n", "    Kl[:2] *= 0.5 ** level\n    Kl[:2, 2] += 0.5 * 0.5 ** level - 0.5\n",
+             ("tests/test_direct.py",)),
+    Mutation("direct tracker's Huber threshold fixed instead of following the residuals", "d3lvo_deploy/direct.py",
+             "    k = max(HUBER_K * MAD_TO_SIGMA * float(np.median(a)), 1e-6)", "    k = 0.02",
+             ("tests/test_direct.py",)),
+    Mutation("direct tracker's rotation Jacobian with the wrong sign", "d3lvo_deploy/direct.py",
+             "J = np.concatenate([a, np.cross(Xt, a)], 1)", "J = np.concatenate([a, np.cross(a, Xt)], 1)",
+             ("tests/test_direct.py",)),
+    Mutation("image_2's baseline applied with the wrong sign", "d3lvo_deploy/calib.py",
+             "        return make_se3(np.eye(3), b)", "        return make_se3(np.eye(3), -b)",
+             ("tests/test_direct.py", "tests/test_calib.py", "tests/test_runtime.py::test_streaming_api_matches_the_file")),
+    Mutation("poses composed in the wrong order in Odometry.step", "d3lvo_deploy/odometry.py",
+             "before, self.pose = self.pose, self.pose @ self.relative",
+             "before, self.pose = self.pose, self.relative @ self.pose",
+             ("tests/test_runtime.py::test_streaming_api_matches_the_file",)),
+    Mutation("only the encoder's file checked against the manifest's hash", "d3lvo_deploy/manifest.py",
+             'if verify_hashes and sha256_file(f) != st["sha256"]:',
+             'if verify_hashes and name == "encoder" and sha256_file(f) != st["sha256"]:',
+             ("tests/test_export.py::test_tampered_and_mismatched",)),
+    Mutation("bench reports the mean as the median", "d3lvo_deploy/bench.py",
+             '"median": float(np.median(a))', '"median": float(np.mean(a))',
+             ("tests/test_bench.py::test_stage_times_summary_by_hand",)),
+    Mutation("a resumed frame range primes the frame counted from 0, not from --start", "d3lvo_deploy/pipeline.py",
+             "            k = rc.start + len(done) - 1", "            k = len(done) - 1",
+             ("tests/test_runtime.py::test_frame_range_and_tum",)),
+    Mutation("an estimate starting late is scored against GT anchored at frame 0", "d3lvo_deploy/evaluation.py",
+             "    gt_rel = relative(gt_poses[first], gt_poses)", "    gt_rel = relative(gt_poses[0], gt_poses)",
+             ("tests/test_metrics.py",)),
+    Mutation("the true flow ignores the vehicles' own motion", "d3lvo_deploy/synth/generator.py",
+             "Xw = point_motion(vehicles, owner.reshape(-1), Xw, frame, frame + 1)",
+             "Xw = point_motion(vehicles, owner.reshape(-1), Xw, frame, frame)",
+             ("tests/test_traffic.py",)),
+    Mutation("the LiDAR sees the vehicles where they are one frame later than the camera does",
+             "d3lvo_deploy/synth/generator.py",
+             "            scan = scan_lidar(frame_scene, ",
+             "            scan = scan_lidar((lambda w: Scene(RayCaster(w['vertices'], w['faces']), w, scene.style, "
+             "scene.tex, scene.sun))(world_at(scene.world, vehicles, min(i + 1, cfg.frames - 1))[0]) "
+             "if vehicles else frame_scene, ",
+             ("tests/test_traffic.py",)),
 ]
 
 
