@@ -37,7 +37,7 @@ def demo_command(
     from d3lvo_deploy.synth.generator import SynthConfig, generate
     from d3lvo_deploy.bundled import find_real_frames
 
-    from .eval_cmd import report_table
+    from .eval_cmd import _fmt, report_table
     from .run_cmd import latency_table, resolve_model_dir
 
     t_start = time.perf_counter()
@@ -68,7 +68,7 @@ def demo_command(
     out.print(report_table(EvalReport([res], "none")))
     out.print(latency_table(summary.stats()))
     plot = plot_trajectories(out_dir / "synthetic_heldout.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
-                             title=f"held-out synthetic drive: t_rel {res.t_rel if res.t_rel is None else round(res.t_rel, 2)} %, "
+                             title=f"held-out synthetic drive: t_rel {_fmt(res.t_rel)} %, "
                                    f"ATE {res.ate:.2f} m")
     console.print(f"poses: {poses_path}\nplot:  {plot}", highlight=False)
 

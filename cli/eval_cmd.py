@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from d3lvo_deploy.evaluation import ALIGN_MODES, EvalReport, evaluate_files, pair_result_files
@@ -20,50 +21,80 @@ def _fmt(v: float | None, nd: int = 2) -> str:
     return "n/a" if v is None else f"{v:.{nd}f}"
 
 
-def report_table(report: EvalReport) -> Table:
-    table = Table(title=f"KITTI odometry evaluation (align: {report.align})")
+def report_table(report: EvalReport | dict[str, EvalReport]) -> Table:
+    """One table; with several estimates (a dict by label) one row per estimate and sequence."""
+    reports = report if isinstance(report, dict) else {"": report}
+    align = next(iter(reports.values())).align
+    table = Table(title=f"KITTI odometry evaluation (align: {align})")
+    if len(reports) > 1:
+        table.add_column("estimate", justify="left")
     for col in ("seq", "frames", "len m", "t_rel %", "r_rel °/100m", "ATE m", "RPE m", "RPE °", "segs"):
         table.add_column(col, justify="right")
-    for s in report.sequences:
-        table.add_row(s.name, str(s.frames), f"{s.path_length_m:.1f}", _fmt(s.t_rel), _fmt(s.r_rel), f"{s.ate:.3f}",
-                      f"{s.rpe_t:.4f}", f"{s.rpe_r:.4f}", str(s.segments))
-    if len(report.sequences) > 1:
-        o = report.overall
-        table.add_row("[bold]all[/]", str(o["frames"]), "", _fmt(o["t_rel"]), _fmt(o["r_rel"]), f"{o['ate']:.3f}",
-                      f"{o['rpe_t']:.4f}", f"{o['rpe_r']:.4f}", str(o["segments"]))
+    for label, rep in reports.items():
+        lead = [escape(label)] if len(reports) > 1 else []
+        for s in rep.sequences:
+            table.add_row(*lead, s.name, str(s.frames), f"{s.path_length_m:.1f}", _fmt(s.t_rel), _fmt(s.r_rel),
+                          f"{s.ate:.3f}", f"{s.rpe_t:.4f}", f"{s.rpe_r:.4f}", str(s.segments))
+        if len(rep.sequences) > 1:
+            o = rep.overall
+            table.add_row(*lead, "[bold]all[/]", str(o["frames"]), "", _fmt(o["t_rel"]), _fmt(o["r_rel"]),
+                          f"{o['ate']:.3f}", f"{o['rpe_t']:.4f}", f"{o['rpe_r']:.4f}", str(o["segments"]))
     return table
+
+
+def _labels(paths: list[Path]) -> list[str]:
+    """Short names for the estimates: file or folder names, with the parent folder where they clash."""
+    names = [p.stem if p.is_file() else p.name for p in paths]
+    if len(set(names)) < len(names):
+        names = [f"{p.parent.name}/{n}" for p, n in zip(paths, names)]
+    if len(set(names)) < len(names):
+        names = [str(p) for p in paths]
+    return names
 
 
 @friendly_errors
 def eval_command(
     gt: Path = typer.Option(..., "--gt", help="Ground-truth trajectory file, or a folder of NN.txt files."),
-    est: Path = typer.Option(..., "--est", help="Estimated trajectory file, or a folder of NN.txt files."),
+    est: list[Path] = typer.Option(..., "--est", help="Estimated trajectory file, or a folder of NN.txt files; "
+                                   "give --est several times to compare methods in one table."),
     align: str = typer.Option("none", "--align", help=f"Alignment before scoring: {'|'.join(ALIGN_MODES)}."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) trajectory PNG here."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE."""
+    """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE.
+
+    Example: d3lvo eval --gt poses.txt --est d3lvo.txt --est direct.txt --plot cmp.png
+    """
     if align not in ALIGN_MODES:
         raise D3LVOInputError(None, f"--align must be one of {', '.join(ALIGN_MODES)}, not {align!r}")
     if plot is not None:
         require("matplotlib", what="--plot")
-    for p, what in ((gt, "ground truth"), (est, "estimate")):
+    for p, what in [(gt, "ground truth")] + [(e, "estimate") for e in est]:
         if not p.exists():
             raise D3LVOInputError(p, f"{what} not found")
-    report = evaluate_files(pair_result_files(gt, est), align=align)
-    for s in report.sequences:
-        for note in s.notes:
-            console.print(f"[yellow]note[/] {s.name}: {note}", highlight=False)
-    if plot is not None:
+    reports = {label: evaluate_files(pair_result_files(gt, e), align=align) for label, e in zip(_labels(est), est)}
+    many = len(reports) > 1
+    for label, report in reports.items():
         for s in report.sequences:
-            target = plot if len(report.sequences) == 1 else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
+            for note in s.notes:
+                console.print(f"[yellow]note[/] {escape(label) + ' ' if many else ''}{s.name}: {note}", highlight=False)
+    if plot is not None:
+        first = next(iter(reports.values()))
+        for k, s in enumerate(first.sequences):
+            target = plot if len(first.sequences) == 1 else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
+            curves = {"GT": s.gt_poses}
+            for label, report in reports.items():
+                r = report.sequences[k]
+                curves[f"{label if many else 'estimate'} (align: {align}, t_rel {_fmt(r.t_rel)} %)"] = r.est_poses
+            title = s.name if many else f"{s.name}: t_rel {_fmt(s.t_rel)} %, ATE {s.ate:.2f} m"
             try:
-                plot_trajectories(target, {"GT": s.gt_poses, f"estimate (align: {report.align})": s.est_poses},
-                                  title=f"{s.name}: t_rel {_fmt(s.t_rel)} %, ATE {s.ate:.2f} m")
+                plot_trajectories(target, curves, title=title)
             except OSError as e:
                 raise D3LVOInputError(target, f"cannot write the plot ({e.strerror})") from None
             console.print(f"plot written to {target}", highlight=False)
     if as_json:
-        typer.echo(json.dumps(report.to_dict(), indent=2))
+        data = next(iter(reports.values())).to_dict() if not many else \
+            {"estimates": {label: r.to_dict() for label, r in reports.items()}}
+        typer.echo(json.dumps(data, indent=2))
     else:
-        out.print(report_table(report))
+        out.print(report_table(reports if many else next(iter(reports.values()))))

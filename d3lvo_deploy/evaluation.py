@@ -91,6 +91,13 @@ def align_estimate(gt: np.ndarray, est: np.ndarray, mode: str) -> tuple[np.ndarr
     raise ValueError(f"align must be one of {ALIGN_MODES}, not {mode!r}")
 
 
+SCALE_HINT = 1.5  # path-length ratio beyond which a result looks up to scale rather than wrong
+
+
+def _path_length(poses: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+
+
 def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Pair estimate poses with GT frames; returns (est frame index array, valid mask over GT, notes)."""
     notes: list[str] = []
@@ -120,6 +127,11 @@ def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "
     gt_rel = relative(gt_poses[first], gt_poses)
     est_rel = relative(est.poses[0], est.poses)
     aligned, scale = align_estimate(gt_rel[ids], est_rel, align)
+    if align in ("none", "6dof"):
+        ratio = _path_length(est_rel) / max(_path_length(gt_rel[ids]), 1e-9)
+        if not 1 / SCALE_HINT < ratio < SCALE_HINT:
+            notes.append(f"the estimate's path is {ratio:.3g}x the ground truth's: up to scale (monocular)? "
+                         "score it with --align 7dof")
 
     full = np.tile(np.eye(4), (len(gt_rel), 1, 1))
     full[ids] = aligned

@@ -96,3 +96,22 @@ def test_synth_bad_size_and_unwritable(tmp_path):
     blocker.write_text("")
     r = runner.invoke(app, ["synth", "--out", str(blocker / "seq"), "--frames", "2", "--size", "320x96"])
     assert r.exit_code == 1 and "cannot create" in r.output and "Traceback" not in r.output
+
+
+def test_eval_several_estimates_one_table_and_a_scale_hint(tmp_path):
+    """Two --est give one table with a row each; a result up to scale (the monocular example,
+    about 1/40 of GT's path) gets a hint to align, and scores the published 2.88 % with --align 7dof."""
+    gt = shared_path("kitti_gt_poses", "09.txt")
+    dfvo, mono = shared_path("kitti_results", "dfvo", "09.txt"), shared_path("kitti_results", "mono_example", "09.txt")
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(dfvo), "--est", str(mono), "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)["estimates"]
+    assert set(d) == {"dfvo/09", "mono_example/09"}
+    assert abs(d["dfvo/09"]["t_rel"] - 2.61) < 0.01
+    assert any("--align 7dof" in n for n in d["mono_example/09"]["notes"])
+    assert not any("--align" in n for n in d["dfvo/09"]["notes"])
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(dfvo), "--est", str(mono)])
+    assert r.exit_code == 0 and "dfvo/09" in r.output and "mono_example/09" in r.output
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(mono), "--align", "7dof", "--json"])
+    res = json.loads(r.stdout)
+    assert abs(res["t_rel"] - 2.88) < 0.01 and not any("--align" in n for n in res["notes"])
