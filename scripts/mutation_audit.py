@@ -106,6 +106,9 @@ MUTATIONS = [
              "scene.tex, scene.sun))(world_at(scene.world, vehicles, min(i + 1, cfg.frames - 1))[0]) "
              "if vehicles else frame_scene, ",
              ("tests/test_traffic.py",)),
+    Mutation("the LiDAR projection drops P2's fourth column (image_2's baseline)", "d3lvo_deploy/calib.py",
+             "        return self.P2 @ self.Tr", "        return np.hstack([self.P2[:, :3], np.zeros((3, 1))]) @ self.Tr",
+             ("tests/test_projection.py", "tests/test_frames.py", "tests/test_calib.py")),
 ]
 
 

@@ -119,3 +119,28 @@ def test_truncated_scan_is_refused(tmp_path):
     np.zeros(10, np.float32)[:-1].tofile(f)
     with pytest.raises(D3LVOInputError, match="000000.bin.*truncated"):
         read_scan(f)
+
+
+def test_velodyne_point_lands_where_p2_puts_it_by_hand():
+    """A point 1 m right, 0.5 m down and 10 m ahead of cam0, given to the runtime as a LiDAR return
+    (through Tr's inverse), must land where KITTI's P2 puts it, with P2's fourth column (image_2 is
+    6.2 cm left of cam0: 44.857 / 721.54) written out by hand: u = (fx X + cx Z + 44.857) /
+    (Z + 0.0027). In the network's bottom-centre 1216x352 crop of a 1242x375 image that pixel moves
+    by (-13, -23). Dropping the baseline column would move it 3.2 px."""
+    from d3lvo_deploy.calib import Calib
+    from d3lvo_deploy.frames import FramePreprocessor
+    from d3lvo_deploy.synth.generator import KITTI_P2, KITTI_TR
+
+    calib = Calib(P2=KITTI_P2.copy(), Tr=KITTI_TR.copy())
+    X, Y, Z = 1.0, 0.5, 10.0
+    u = (721.5377 * X + 609.5593 * Z + 44.85728) / (Z + 0.002745884)
+    v = (721.5377 * Y + 172.854 * Z + 0.2163791) / (Z + 0.002745884)
+    velo = np.linalg.inv(KITTI_TR) @ np.array([X, Y, Z, 1.0])
+    scan = np.array([[*velo[:3], 0.5]], np.float32)
+    c, r, z = project_points(scan, calib.P_velo_to_image2, 1242, 375)
+    assert (c[0], r[0]) == (int(np.floor(u + 0.5)), int(np.floor(v + 0.5)))
+    assert abs(z[0] - (Z + 0.002745884)) < 1e-4
+    pre = FramePreprocessor.create(calib, 1242, 375, 1216, 352, "sparse")
+    d = pre.depth(scan)
+    rows, cols = np.nonzero(d)
+    assert (cols.tolist(), rows.tolist()) == ([int(np.floor(u + 0.5)) - 13], [int(np.floor(v + 0.5)) - 23])
