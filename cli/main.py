@@ -15,7 +15,6 @@ from .train_cmd import train_command
 
 app = typer.Typer(
     name="d3lvo",
-    help="D3LVO LiDAR-visual odometry: synthetic KITTI data, evaluation, export and ONNX runtime.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -33,17 +32,23 @@ def _version(value: bool) -> None:
 @app.callback()
 def root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                       help="Print the version and exit.")) -> None:
-    """D3LVO LiDAR-visual odometry toolkit."""
+    """D3LVO LiDAR-visual odometry: train in PyTorch, export to ONNX, run on a CPU without torch.
+
+    The commands in the order of the work: demo (everything once, on the bundled model), synth
+    (KITTI-format synthetic drives), train, export (three ONNX stages), parity (ONNX against
+    torch), run (odometry on a KITTI folder), eval (KITTI devkit scores), bench (speed on this CPU).
+    Example: d3lvo run --seq-dir KITTI/sequences/09 --out 09.txt
+    """
 
 
-app.command("eval")(eval_command)
+app.command("demo")(demo_command)
 app.command("synth")(synth_command)
 app.command("train")(train_command)
 app.command("export")(export_command)
 app.command("parity")(parity_command)
 app.command("run")(run_command)
+app.command("eval")(eval_command)
 app.command("bench")(bench_command)
-app.command("demo")(demo_command)
 
 
 def main() -> None:

@@ -58,12 +58,12 @@ def run_command(
                                     "and completed depth, flow, pose confidence), one PNG per --viz-every frames."),
     viz_every: int = typer.Option(10, "--viz-every", help="With --viz or --rerun: pictures of every N-th frame."),
     rerun: Path | None = typer.Option(None, "--rerun", help="Write a Rerun recording (FILE.rrd: trajectory, LiDAR "
-                                      "points, camera images and network outputs) for the Rerun viewer ([rerun] extra)."),
+                                      "points, camera images and network outputs) for the Rerun viewer (the \\[rerun] extra)."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
     threads: int = typer.Option(0, "--threads", help="Inference threads (0: all cores)."),
-    backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the [openvino] extra) | auto "
+    backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the \\[openvino] extra) | auto "
                                 "(openvino where installed, else onnxruntime; `d3lvo bench` times both)."),
     ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 uses "
                                      "the CPU's AVX512_BF16/AMX paths; see the README's precision table)."),
