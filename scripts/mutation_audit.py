@@ -145,8 +145,11 @@ def main(argv: list[str]) -> int:
     for k in chosen:
         m = MUTATIONS[k - 1]
         with tempfile.TemporaryDirectory(prefix=f"d3lvo-mutation-{k}-") as d:
-            tree = Path(d)
+            tree = Path(d) / ROOT.name
+            tree.mkdir()
             scratch_copy(tree)
+            if (ROOT.parent / "shared").is_dir():  # the tests on real KITTI files find ../shared/data
+                (Path(d) / "shared").symlink_to(ROOT.parent / "shared")
             apply(m, tree)
             caught, failed = run_tests(tree, m.tests)
         missed += not caught
