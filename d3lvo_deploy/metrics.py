@@ -101,3 +101,22 @@ def rpe(gt: np.ndarray, est: np.ndarray, delta: int = 1) -> tuple[float, float]:
     gt = np.asarray(gt, dtype=np.float64)
     est = np.asarray(est, dtype=np.float64)
     return rpe_from_motions(relative(gt[:-delta], gt[delta:]), relative(est[:-delta], est[delta:]))
+
+
+def auroc(scores: np.ndarray, labels: np.ndarray) -> float | None:
+    """Area under the ROC curve of `scores` ranking the positives (labels True) first: the
+    Mann-Whitney U statistic over average ranks, so ties count one half. None without both classes."""
+    s = np.asarray(scores, dtype=np.float64).ravel()
+    y = np.asarray(labels, dtype=bool).ravel()
+    n_pos, n_neg = int(y.sum()), int((~y).sum())
+    if n_pos == 0 or n_neg == 0:
+        return None
+    order = np.argsort(s, kind="mergesort")
+    ranks = np.empty(len(s))
+    sorted_s = s[order]
+    # average rank of each run of equal scores
+    edges = np.flatnonzero(np.diff(sorted_s)) + 1
+    starts, ends = np.concatenate([[0], edges]), np.concatenate([edges, [len(s)]])
+    for a, b in zip(starts, ends):
+        ranks[order[a:b]] = (a + b + 1) / 2.0
+    return float((ranks[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))

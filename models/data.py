@@ -1,8 +1,13 @@
 """Training pairs from KITTI-format sequences (real KITTI or `d3lvo synth` output).
 
 A sample is frames (t-1, t) at the network resolution: RGB in [0,1], the depth input the config
-asks for (sparse LiDAR, IP-Basic dense, or nothing), the renderer's dense depth where the
-sequence has `depth_2/` (else zeros), and the GT relative pose of the image_2 camera.
+asks for (sparse LiDAR, IP-Basic dense, or nothing), a depth target, the GT relative pose of the
+image_2 camera, the optical-flow target and, where the sequence has `motion_2/`, the mask of
+pixels on moving vehicles. The flow target is the true flow where the sequence has `flow_2/`
+(`d3lvo synth --traffic`: vehicles move on their own), else the rigid flow of the GT motion,
+which is the true flow of a static world. The depth target is the renderer's z-buffer where the
+sequence has `depth_2/`; else (real KITTI) a random fifth of the LiDAR returns, held out of the
+depth input, so that completion is supervised where it has to guess rather than where it copies.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ class AugmentConfig:
     # velocity); training starts it from the GT previous motion, and from identity with this
     # probability, so that it also learns to converge from a cold start (a sequence's first pair)
     cold_start: float = 0.2
+    held_out_returns: float = 0.2  # without depth_2/: share of LiDAR returns kept out of the input as target
 
 
 def rigid_flow(depth: np.ndarray, K: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +85,38 @@ class FrameLoader:
             raise D3LVOInputError(self.seq.image_path(i), f"size {img.shape[1]}x{img.shape[0]} differs from frame 0")
         return self.pre.rgb(img)
 
-    def depth_input(self, i: int) -> np.ndarray:
-        return self.pre.depth(None if self.cfg.depth_input == "none" else self.seq.scan(i))
+    def depth_input(self, i: int, points: np.ndarray | None = None) -> np.ndarray:
+        if self.cfg.depth_input == "none":
+            return self.pre.depth(None)
+        return self.pre.depth(self.seq.scan(i) if points is None else points)
+
+    def _png(self, folder: str, i: int) -> np.ndarray | None:
+        f = self.seq.root / folder / f"{self.seq.frame_names[i]}.png"
+        if not f.is_file():
+            return None
+        a = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if a is None:
+            raise D3LVOInputError(f, f"cannot be decoded as a {folder} PNG")
+        return a
+
+    def flow_target_map(self, i: int) -> np.ndarray | None:
+        """Where each network pixel of frame i lands in frame i+1, from `flow_2/` (KITTI flow PNG,
+        source pixels): (3,h,w) target x, target y (network pixels) and validity; None without it."""
+        png = self._png("flow_2", i)
+        if png is None:
+            return None
+        flow = (np.dstack([png[..., 2], png[..., 1]]).astype(np.float64) - 32768.0) / 64.0
+        h, w = png.shape[:2]
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        A = self.view.affine
+        tx = A[0, 0] * (u + flow[..., 0]) + A[0, 2]
+        ty = A[1, 1] * (v + flow[..., 1]) + A[1, 2]
+        # nearest resampling as for depth: a target must not blend a car's pixel with the road's
+        return np.stack([self.view.apply_depth(a.astype(np.float32)) for a in (tx, ty, (png[..., 0] > 0))])
+
+    def motion_mask(self, i: int) -> np.ndarray | None:
+        m = self._png("motion_2", i)
+        return None if m is None else self.view.apply_depth((m > 0).astype(np.float32))
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
@@ -124,17 +160,29 @@ class PairDataset(Dataset):
     def __getitem__(self, idx: int) -> dict[str, torch.Tensor]:
         k, i = self.items[idx]
         L = self.loaders[k]
+        rng = np.random.default_rng([self.seed, self.epoch, idx])
         imgs = [L.rgb(i - 1), L.rgb(i)]
-        deps = [L.depth_input(i - 1), L.depth_input(i)]
-        # depth targets (completion L1, flow target): the dense z-buffer where the data has one
-        # (synthetic depth_2/), else the LiDAR returns themselves (real KITTI)
         gts = [L.gt_depth(j) for j in (i - 1, i)]
-        gts = [g if np.any(g > 0) else sparse_depth(L.seq.scan(j), L.pre.P, self.cfg.width, self.cfg.height)
-               for g, j in zip(gts, (i - 1, i))]
-        gts.append(gts[0])
+        deps, rigid_depth = [], gts[0]  # the rigid-flow target wants depth wherever it can have it
+        for n, j in enumerate((i - 1, i)):
+            if np.any(gts[n] > 0):  # the renderer's z-buffer is the target; every return is input
+                deps.append(L.depth_input(j))
+                continue
+            # real KITTI: each scan read once; a random share of its returns is the target only
+            scan = L.seq.scan(j)
+            out = rng.uniform(size=len(scan)) < (self.augment.held_out_returns if self.augment else 0.0)
+            deps.append(L.depth_input(j, scan[~out]))
+            gts[n] = sparse_depth(scan[out] if out.any() else scan, L.pre.P, self.cfg.width, self.cfg.height)
+            if n == 0:
+                rigid_depth = sparse_depth(scan, L.pre.P, self.cfg.width, self.cfg.height) if out.any() else gts[0]
+        gts.append(rigid_depth)
+        target = L.flow_target_map(i - 1)  # (3,h,w) or None
+        moving = L.motion_mask(i - 1)
+        maps = [] if target is None else [target[0], target[1], target[2]]
+        if moving is not None:
+            maps.append(moving)
         A = self.relative_pose(k, i)
         A0 = self.relative_pose(k, i - 1) if i >= 2 else np.eye(4)
-        rng = np.random.default_rng([self.seed, self.epoch, idx])
         if self.augment is not None and rng.uniform() < self.augment.cold_start:
             A0 = np.eye(4)
         if self.augment is not None:
@@ -142,13 +190,20 @@ class PairDataset(Dataset):
             cx, cy = float(L.K[0, 2]), float(L.K[1, 2])
             if rng.uniform() < a.flip:
                 imgs, deps, gts = flip_images(*imgs), flip_images(*deps), flip_images(*gts)
+                maps = flip_images(*maps)
+                if target is not None:  # target positions mirror with the image
+                    maps[0] = self.cfg.width - 1 - maps[0]
                 A, A0 = flip_pose(A), flip_pose(A0)
                 cx = self.cfg.width - 1 - cx  # the principal point mirrors too
             if a.rotation_deg > 0:
                 ang = float(rng.uniform(-a.rotation_deg, a.rotation_deg))
                 centre = (cx, cy)
-                imgs, deps2 = rotate_images(imgs, deps + gts, ang, centre)
-                deps, gts = deps2[:2], deps2[2:]
+                imgs, deps2 = rotate_images(imgs, deps + gts + maps, ang, centre)
+                deps, gts, maps = deps2[:2], deps2[2:5], deps2[5:]
+                if target is not None:  # and rotate with it (both frames turn alike)
+                    R = cv2.getRotationMatrix2D(centre, ang, 1.0)
+                    tx, ty = maps[0], maps[1]
+                    maps[0], maps[1] = R[0, 0] * tx + R[0, 1] * ty + R[0, 2], R[1, 0] * tx + R[1, 1] * ty + R[1, 2]
                 A, A0 = roll_pose(A, ang), roll_pose(A0, ang)
             if a.brightness > 0:
                 f = float(rng.uniform(1 - a.brightness, 1 + a.brightness))
@@ -157,7 +212,12 @@ class PairDataset(Dataset):
             cx, cy = float(L.K[0, 2]), float(L.K[1, 2])
         K = L.K.copy()
         K[0, 2], K[1, 2] = cx, cy
-        flow, valid = rigid_flow(gts[2], K, A)
+        if target is None:
+            flow, valid = rigid_flow(gts[2], K, A)
+        else:
+            v, u = np.mgrid[0:self.cfg.height, 0:self.cfg.width].astype(np.float32)
+            valid = (maps[2] > 0.5).astype(np.float32)[None]
+            flow = (np.stack([maps[0] - u, maps[1] - v]) * valid).astype(np.float32)
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
         return {
             "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),
@@ -166,4 +226,6 @@ class PairDataset(Dataset):
             "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)), "init": t(A0.astype(np.float32)),
             "K": t(np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)),
             "flow": t(flow), "flow_valid": t(valid),
+            # 1 on moving vehicles, 0 elsewhere, -1 where the sequence has no motion masks
+            "moving": t((maps[-1] if moving is not None else np.full(flow.shape[1:], -1.0)).astype(np.float32))[None],
         }

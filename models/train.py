@@ -20,6 +20,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.evaluation import evaluate
+from d3lvo_deploy.metrics import auroc
 from d3lvo_deploy.poses import Trajectory
 from d3lvo_deploy.sequence import KittiSequence
 
@@ -111,12 +112,15 @@ def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
 
 
 def level_flow_target(flow: torch.Tensor, valid: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
-    """Full-resolution rigid flow (px) -> a level's grid (cells): the mean over each cell's pixels
-    that have a target. A cell counts when any of its pixels has one, so sparse LiDAR targets
-    (real KITTI: ~5 % of pixels) still supervise every cell they touch."""
+    """Full-resolution flow (px) -> a level's grid (cells): the mean over the pixels with a target
+    in the (s+1)-wide window centred on the cell's pixel s*i, the encoder's sampling (a plain
+    s-wide pooling would centre it at s*i + (s-1)/2, half a cell off). A cell counts when any of
+    its pixels has a target, so sparse LiDAR targets (real KITTI: ~5 % of pixels) still
+    supervise every cell they touch."""
     s = flow.shape[-1] // shape[-1]
-    v = F.avg_pool2d(valid, s)
-    return F.avg_pool2d(flow * valid, s) / v.clamp(min=1e-6) / s, v > 0
+    pool = lambda x: F.avg_pool2d(x, s + 1, stride=s, padding=s // 2)  # noqa: E731
+    v = pool(valid)
+    return pool(flow * valid) / v.clamp(min=1e-6) / s, v > 0
 
 
 def flow_errors(flows: list[torch.Tensor], batch: dict, device) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -146,16 +150,25 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
     """Frame-pair errors next to their baselines, on evenly spaced pairs of each sequence
     (no augmentation, the GN head started from the GT previous motion as in training):
     flow EPE per level against predicting zero flow, rotation error (deg) against predicting no
-    rotation, translation error (m) against predicting no motion."""
+    rotation, translation error (m) against predicting no motion; on sequences with motion masks
+    (`d3lvo synth --traffic`), per level the AUROC of low confidence for cells on moving vehicles
+    (0.5 is what a uniform confidence scores)."""
     model.eval()
     data = PairDataset(seqs, model.cfg, augment=None)
     idx = np.linspace(0, len(data) - 1, min(pairs, len(data))).round().astype(int)
     dev = next(model.parameters()).device
     acc: dict[str, list[float]] = {}
+    conf_scores: dict[int, list[np.ndarray]] = {}
+    conf_labels: dict[int, list[np.ndarray]] = {}
     for i in idx:
         b = {k: v[None] for k, v in data[int(i)].items()}
         out = model(b["rgb1"].to(dev), b["rgb2"].to(dev), b["depth1"].to(dev), b["depth2"].to(dev),
                     b["K"].to(dev), b["init"].to(dev))
+        if float(b["moving"].min()) >= 0 and "confidence" in out:
+            for lvl, c in zip(model.cfg.gn_levels, out["confidence"]):
+                moving = F.adaptive_avg_pool2d(b["moving"], c.shape[-2:]) > 0.5
+                conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
+                conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
         for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
             acc.setdefault(f"flow_epe_l{lvl}", []).append(float(e))
             acc.setdefault(f"flow_epe_l{lvl}_zero", []).append(float(z))
@@ -164,7 +177,12 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
         acc.setdefault("rot_err_deg_zero", []).append(float(_rotation_deg(G[:3, :3])))
         acc.setdefault("trans_err_m", []).append(float((P[:3, 3] - G[:3, 3]).norm()))
         acc.setdefault("trans_err_m_zero", []).append(float(G[:3, 3].norm()))
-    return {k: float(np.mean(v)) for k, v in acc.items()}
+    res = {k: float(np.mean(v)) for k, v in acc.items()}
+    for lvl in conf_scores:
+        a = auroc(np.concatenate(conf_scores[lvl]), np.concatenate(conf_labels[lvl]))
+        if a is not None:
+            res[f"moving_auroc_l{lvl}"] = a
+    return res
 
 
 class EpochSampler(Sampler):

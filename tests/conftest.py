@@ -96,3 +96,16 @@ def small_model(tmp_path_factory) -> tuple[Path, Path]:
     ck = make_checkpoint(d / "ck.pt")
     export_checkpoint(ck, ExportConfig(out=d / "onnx"))
     return ck, d / "onnx"
+
+
+@pytest.fixture(scope="session")
+def traffic_clip(tmp_path_factory) -> Path:
+    """8 frames at 416x128 with 6 vehicles per 100 m, LiDAR without range noise or dropout (the
+    geometry checks are exact)."""
+    pytest.importorskip("embreex")
+    from d3lvo_deploy.synth.generator import SynthConfig, generate
+    from d3lvo_deploy.synth.sensors import LidarConfig
+
+    out = tmp_path_factory.mktemp("traffic") / "seq"
+    return generate(out, SynthConfig(frames=8, seed=21, width=416, height=128, traffic=6.0,
+                                     lidar=LidarConfig(noise_m=0.0, dropout=0.0)))

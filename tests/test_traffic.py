@@ -23,14 +23,6 @@ from d3lvo_deploy.synth.world import build_path  # noqa: E402
 SIZE = (416, 128)
 
 
-@pytest.fixture(scope="session")
-def traffic_clip(tmp_path_factory) -> Path:
-    """8 frames, 6 vehicles per 100 m, LiDAR without range noise or dropout (geometry checks are exact)."""
-    out = tmp_path_factory.mktemp("traffic") / "seq"
-    return generate(out, SynthConfig(frames=8, seed=21, width=SIZE[0], height=SIZE[1], traffic=6.0,
-                                     lidar=LidarConfig(noise_m=0.0, dropout=0.0)))
-
-
 def _mask(seq_dir: Path, i: int) -> np.ndarray:
     return cv2.imread(str(seq_dir / "motion_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
 
