@@ -65,8 +65,8 @@ class SynthConfig:
     sensor_effects: bool = False  # exposure changes, vignetting, shot noise, dark/far LiDAR dropout
 
     def meta(self) -> dict:
-        """synth.json: the settings, without the traffic and sensor keys at their defaults, so a
-        static drive's folder reads the same as before those options existed."""
+        """synth.json: the settings, leaving out the traffic and sensor keys at their defaults, so
+        that a static drive's file names only what shapes it (and static folders stay resumable)."""
         d = {"generator_version": GENERATOR_VERSION, **asdict(self)}
         for k in ("traffic", "sensor_effects"):
             if not d[k]:
