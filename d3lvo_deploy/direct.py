@@ -39,7 +39,7 @@ class DirectConfig:
     damping: float = 1e-4  # Levenberg-Marquardt lambda relative to diag(H)
     min_depth: float = 0.5
     max_depth: float = 120.0
-    occlusion_window: int = 5  # points behind a nearer return within this many pixels are dropped
+    occlusion_window: int = 5  # points behind a nearer return in this window (pixels, square) are dropped
     occlusion_margin: float = 0.1  # ... when farther than (1 + margin) x the nearest one
     # fit frame t's grey as a ref + b at every iterate (exposure changes). Off: measured on five
     # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->

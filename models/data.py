@@ -100,19 +100,18 @@ class FrameLoader:
         return a
 
     def flow_target_map(self, i: int) -> np.ndarray | None:
-        """Where each network pixel of frame i lands in frame i+1, from `flow_2/` (KITTI flow PNG,
-        source pixels): (3,h,w) target x, target y (network pixels) and validity; None without it."""
+        """Frame i's flow to frame i+1 at the network resolution, from `flow_2/` (KITTI flow PNG,
+        source pixels): (3,h,w) flow u, v in network pixels and validity; None without it. The
+        displacement is resampled, not the target position: nearest resampling picks a source
+        pixel up to a pixel away from the network pixel's centre, which cancels in a displacement."""
         png = self._png("flow_2", i)
         if png is None:
             return None
         flow = (np.dstack([png[..., 2], png[..., 1]]).astype(np.float64) - 32768.0) / 64.0
-        h, w = png.shape[:2]
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
         A = self.view.affine
-        tx = A[0, 0] * (u + flow[..., 0]) + A[0, 2]
-        ty = A[1, 1] * (v + flow[..., 1]) + A[1, 2]
         # nearest resampling as for depth: a target must not blend a car's pixel with the road's
-        return np.stack([self.view.apply_depth(a.astype(np.float32)) for a in (tx, ty, (png[..., 0] > 0))])
+        return np.stack([self.view.apply_depth(a.astype(np.float32))
+                         for a in (A[0, 0] * flow[..., 0], A[1, 1] * flow[..., 1], (png[..., 0] > 0))])
 
     def motion_mask(self, i: int) -> np.ndarray | None:
         m = self._png("motion_2", i)
@@ -191,8 +190,8 @@ class PairDataset(Dataset):
             if rng.uniform() < a.flip:
                 imgs, deps, gts = flip_images(*imgs), flip_images(*deps), flip_images(*gts)
                 maps = flip_images(*maps)
-                if target is not None:  # target positions mirror with the image
-                    maps[0] = self.cfg.width - 1 - maps[0]
+                if target is not None:  # the flow mirrors with the image
+                    maps[0] = -maps[0]
                 A, A0 = flip_pose(A), flip_pose(A0)
                 cx = self.cfg.width - 1 - cx  # the principal point mirrors too
             if a.rotation_deg > 0:
@@ -200,10 +199,10 @@ class PairDataset(Dataset):
                 centre = (cx, cy)
                 imgs, deps2 = rotate_images(imgs, deps + gts + maps, ang, centre)
                 deps, gts, maps = deps2[:2], deps2[2:5], deps2[5:]
-                if target is not None:  # and rotate with it (both frames turn alike)
+                if target is not None:  # and turns with it (both frames turn alike: no shift)
                     R = cv2.getRotationMatrix2D(centre, ang, 1.0)
-                    tx, ty = maps[0], maps[1]
-                    maps[0], maps[1] = R[0, 0] * tx + R[0, 1] * ty + R[0, 2], R[1, 0] * tx + R[1, 1] * ty + R[1, 2]
+                    du, dv = maps[0], maps[1]
+                    maps[0], maps[1] = R[0, 0] * du + R[0, 1] * dv, R[1, 0] * du + R[1, 1] * dv
                 A, A0 = roll_pose(A, ang), roll_pose(A0, ang)
             if a.brightness > 0:
                 f = float(rng.uniform(1 - a.brightness, 1 + a.brightness))
@@ -215,9 +214,8 @@ class PairDataset(Dataset):
         if target is None:
             flow, valid = rigid_flow(gts[2], K, A)
         else:
-            v, u = np.mgrid[0:self.cfg.height, 0:self.cfg.width].astype(np.float32)
             valid = (maps[2] > 0.5).astype(np.float32)[None]
-            flow = (np.stack([maps[0] - u, maps[1] - v]) * valid).astype(np.float32)
+            flow = (np.stack([maps[0], maps[1]]) * valid).astype(np.float32)
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
         return {
             "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),

@@ -135,7 +135,7 @@ def flow_errors(flows: list[torch.Tensor], batch: dict, device) -> list[tuple[to
 
 
 def flow_loss(flows: list[torch.Tensor], batch: dict, device) -> torch.Tensor:
-    """Mean end-point error of each flow level against the rigid-flow target, averaged over levels."""
+    """Mean end-point error of each flow level against its target (true flow, else rigid), averaged over levels."""
     errs = flow_errors(flows, batch, device)
     return torch.stack([e for e, _ in errs]).mean() if errs else torch.zeros((), device=device)
 
@@ -166,7 +166,8 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
                     b["K"].to(dev), b["init"].to(dev))
         if float(b["moving"].min()) >= 0 and "confidence" in out:
             for lvl, c in zip(model.cfg.gn_levels, out["confidence"]):
-                moving = F.adaptive_avg_pool2d(b["moving"], c.shape[-2:]) > 0.5
+                s = b["moving"].shape[-1] // c.shape[-1]  # cells centred on pixel s*i, as the flow targets
+                moving = F.avg_pool2d(b["moving"], s + 1, stride=s, padding=s // 2) > 0.5 if s > 1 else b["moving"] > 0.5
                 conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
                 conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
         for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
