@@ -80,12 +80,13 @@ def eval_command(
                 console.print(f"[yellow]note[/] {escape(label) + ' ' if many else ''}{s.name}: {note}", highlight=False)
     if plot is not None:
         first = next(iter(reports.values()))
-        for k, s in enumerate(first.sequences):
+        for s in first.sequences:
             target = plot if len(first.sequences) == 1 else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
             curves = {"GT": s.gt_poses}
-            for label, report in reports.items():
-                r = report.sequences[k]
-                curves[f"{label if many else 'estimate'} (align: {align}, t_rel {_fmt(r.t_rel)} %)"] = r.est_poses
+            for label, report in reports.items():  # the same sequence of each estimate, by name
+                r = next((x for x in report.sequences if x.name == s.name), None)
+                if r is not None:
+                    curves[f"{label if many else 'estimate'} (align: {align}, t_rel {_fmt(r.t_rel)} %)"] = r.est_poses
             title = s.name if many else f"{s.name}: t_rel {_fmt(s.t_rel)} %, ATE {s.ate:.2f} m"
             try:
                 plot_trajectories(target, curves, title=title)
