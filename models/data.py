@@ -25,6 +25,7 @@ from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.projection import View, sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
+from d3lvo_deploy.synth.generator import decode_kitti_flow
 
 from .augment import flip_images, flip_pose, roll_pose, rotate_images
 from .config import D3LVOConfig
@@ -107,11 +108,11 @@ class FrameLoader:
         png = self._png("flow_2", i)
         if png is None:
             return None
-        flow = (np.dstack([png[..., 2], png[..., 1]]).astype(np.float64) - 32768.0) / 64.0
+        flow, valid = decode_kitti_flow(png)
         A = self.view.affine
         # nearest resampling as for depth: a target must not blend a car's pixel with the road's
         return np.stack([self.view.apply_depth(a.astype(np.float32))
-                         for a in (A[0, 0] * flow[..., 0], A[1, 1] * flow[..., 1], (png[..., 0] > 0))])
+                         for a in (A[0, 0] * flow[..., 0], A[1, 1] * flow[..., 1], valid)])
 
     def motion_mask(self, i: int) -> np.ndarray | None:
         m = self._png("motion_2", i)
