@@ -68,10 +68,14 @@ def _dist_info() -> tuple[int, int, bool]:
 
 
 def _device(name: str, rank: int) -> torch.device:
+    """torchrun's LOCAL_RANK picks the GPU of this node (RANK counts over all nodes)."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name == "cuda":
-        return torch.device("cuda", rank % max(torch.cuda.device_count(), 1))
+        local = int(os.environ.get("LOCAL_RANK", rank))
+        dev = torch.device("cuda", local % max(torch.cuda.device_count(), 1))
+        torch.cuda.set_device(dev)
+        return dev
     return torch.device(name)
 
 
@@ -290,6 +294,14 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                     raise FloatingPointError(f"loss became {float(loss)} at step {step}")
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+                if distributed:
+                    # DDP averages the model's gradients only; s_t, s_q sit outside it. Averaged here
+                    # too, every rank sees the same gradients, so clipping scales them alike and the
+                    # replicas stay identical
+                    for q in criterion.parameters():
+                        if q.grad is not None:
+                            dist.all_reduce(q.grad)
+                            q.grad /= world
                 torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
                 opt.step()
                 sched.step()

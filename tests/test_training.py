@@ -225,6 +225,20 @@ def test_ddp_two_cpu_processes(small_synth, tmp_path):
     assert ck["step"] == 2
 
 
+def test_ddp_replicas_stay_identical_with_clipping(small_synth, tmp_path):
+    """Two gloo ranks, clipping forced on every step (grad_clip 1e-3): after 3 steps both ranks hold
+    bitwise the same weights and loss balance terms s_t, s_q (each rank clipping by its own norm,
+    or s_t, s_q left out of the all-reduce, makes them differ)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                        str(ROOT / "tests" / "ddp_replica.py"), str(small_synth), str(tmp_path), "1e-3"],
+                       cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    a, b = (tmp_path / "rank_0.txt").read_text(), (tmp_path / "rank_1.txt").read_text()
+    print(a, b)
+    assert a == b
+
+
 def test_rigid_flow_hand_case():
     """Moving 1 m forward towards a wall 10 m away: a pixel at (u, v) moves to c + (p - c) * 10/9."""
     from models.data import rigid_flow
