@@ -109,6 +109,10 @@ MUTATIONS = [
     Mutation("the LiDAR projection drops P2's fourth column (image_2's baseline)", "d3lvo_deploy/calib.py",
              "        return self.P2 @ self.Tr", "        return np.hstack([self.P2[:, :3], np.zeros((3, 1))]) @ self.Tr",
              ("tests/test_projection.py", "tests/test_frames.py", "tests/test_calib.py")),
+    Mutation("DDP leaves the loss balance terms' gradients out of the all-reduce", "models/train.py",
+             "                            dist.all_reduce(q.grad)\n                            q.grad /= world\n",
+             "                            pass\n",
+             ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping",)),
 ]
 
 
