@@ -229,7 +229,8 @@ def test_ddp_replicas_stay_identical_with_clipping(small_synth, tmp_path):
     """Two gloo ranks, clipping forced on every step (grad_clip 1e-3): after 3 steps both ranks hold
     bitwise the same weights and loss balance terms s_t, s_q (each rank clipping by its own norm,
     or s_t, s_q left out of the all-reduce, makes them differ)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # the script's folder comes first on its sys.path: name this tree so it imports this tree's models
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
                         str(ROOT / "tests" / "ddp_replica.py"), str(small_synth), str(tmp_path), "1e-3"],
                        cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
