@@ -115,16 +115,20 @@ def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     return (pred - gt).abs()[mask].mean()
 
 
+def cell_pool(x: torch.Tensor, s: int) -> torch.Tensor:
+    """Mean over the (s+1)-wide window centred on each level cell's pixel s*i, the encoder's
+    sampling (a plain s-wide pooling would centre it at s*i + (s-1)/2, half a cell off)."""
+    return x if s == 1 else F.avg_pool2d(x, s + 1, stride=s, padding=s // 2)
+
+
 def level_flow_target(flow: torch.Tensor, valid: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
     """Full-resolution flow (px) -> a level's grid (cells): the mean over the pixels with a target
-    in the (s+1)-wide window centred on the cell's pixel s*i, the encoder's sampling (a plain
-    s-wide pooling would centre it at s*i + (s-1)/2, half a cell off). A cell counts when any of
+    in each cell's window (`cell_pool`). A cell counts when any of
     its pixels has a target, so sparse LiDAR targets (real KITTI: ~5 % of pixels) still
     supervise every cell they touch."""
     s = flow.shape[-1] // shape[-1]
-    pool = lambda x: F.avg_pool2d(x, s + 1, stride=s, padding=s // 2)  # noqa: E731
-    v = pool(valid)
-    return pool(flow * valid) / v.clamp(min=1e-6) / s, v > 0
+    v = cell_pool(valid, s)
+    return cell_pool(flow * valid, s) / v.clamp(min=1e-6) / s, v > 0
 
 
 def flow_errors(flows: list[torch.Tensor], batch: dict, device) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -170,8 +174,7 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
                     b["K"].to(dev), b["init"].to(dev))
         if float(b["moving"].min()) >= 0 and "confidence" in out:
             for lvl, c in zip(model.cfg.gn_levels, out["confidence"]):
-                s = b["moving"].shape[-1] // c.shape[-1]  # cells centred on pixel s*i, as the flow targets
-                moving = F.avg_pool2d(b["moving"], s + 1, stride=s, padding=s // 2) > 0.5 if s > 1 else b["moving"] > 0.5
+                moving = cell_pool(b["moving"], b["moving"].shape[-1] // c.shape[-1]) > 0.5  # as the flow targets
                 conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
                 conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
         for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
