@@ -25,6 +25,7 @@ import numpy as np
 from .calib import Calib
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
+from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 
 MAD_TO_SIGMA = 1.4826  # MAD of a normal distribution times this is its standard deviation
 HUBER_K = 1.345  # Huber's threshold in sigmas: 95 % efficiency on Gaussian residuals
@@ -33,18 +34,26 @@ HUBER_K = 1.345  # Huber's threshold in sigmas: 95 % efficiency on Gaussian resi
 @dataclass
 class DirectConfig:
     levels: int = 3  # pyramid levels: the full image and (levels - 1) pyrDown halvings
-    iterations: tuple[int, ...] = (15, 15, 15)  # most Gauss-Newton steps per level, coarse to fine
-    min_gradient: float = 0.02  # |grad| of frame t-1's grey [0, 1] image where a point is kept
+    # most Gauss-Newton steps per level, coarse to fine. 6 per level tracked the static drives and
+    # the real frames as well as 15 (docs/evaluation.md), at 40 % of the exported solver's ops
+    iterations: tuple[int, ...] = (6, 6, 6)
     stop_step: float = 1e-6  # stop a level when the step moves no point by more than ~this (m, rad)
     damping: float = 1e-4  # Levenberg-Marquardt lambda relative to diag(H)
-    min_depth: float = 0.5
-    max_depth: float = 120.0
-    occlusion_window: int = 5  # points behind a nearer return in this window (pixels, square) are dropped
-    occlusion_margin: float = 0.1  # ... when farther than (1 + margin) x the nearest one
+    points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked
     # fit frame t's grey as a ref + b at every iterate (exposure changes). Off: measured on five
     # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->
     # 0.17 %) and cost 0.02-0.06 points on the four static, evenly lit ones
     affine_brightness: bool = False
+
+    @classmethod
+    def of_model(cls, model_config: dict) -> "DirectConfig":
+        """The classical mode of a point-solver model (its manifest's `model_config`): the same
+        points, pyramid, iteration counts, stop and damping, with every confidence 1."""
+        if model_config.get("pose_head") != "points":
+            return cls()
+        iters = tuple(model_config["pt_iters"])
+        return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
+                   damping=model_config["pt_damping"], points=point_config(model_config))
 
 
 @dataclass
@@ -72,49 +81,9 @@ def pyramid(grey: np.ndarray, K: np.ndarray, levels: int) -> list[Level]:
     for lvl in range(levels):
         if lvl:
             g = cv2.pyrDown(g)
-        gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
-        gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
+        gx, gy = gradients(g)
         out.append(Level(np.dstack([g, gx, gy]), level_intrinsics(K, lvl)))
     return out
-
-
-def sample(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear sample of an (h, w, c) image at (N, 2) pixel positions -> (N, c); 0 outside."""
-    n = len(uv)
-    rows = -(-n // 1024)  # remap maps must stay under 32767 columns: lay the points out in rows of 1024
-    m = np.full((rows * 1024, 2), -1.0, np.float32)
-    m[:n] = uv
-    out = cv2.remap(img, m.reshape(rows, 1024, 2), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=0.0)
-    return out.reshape(rows * 1024, -1)[:n]
-
-
-def project(X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) camera points -> (N, 2) pixels and their inverse depth."""
-    zi = 1.0 / X[:, 2]
-    uv = np.stack([K[0, 0] * X[:, 0] * zi + K[0, 2], K[1, 1] * X[:, 1] * zi + K[1, 2]], 1)
-    return uv, zi
-
-
-def visible_points(points: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray, shape: tuple[int, int],
-                   cfg: DirectConfig) -> np.ndarray:
-    """The scan's returns in the camera frame that the camera sees: in the image, in the depth range,
-    and not hidden behind a nearer return nearby (the LiDAR sits above the camera, so it sees
-    surfaces behind a car's edge that the camera does not)."""
-    X = points[:, :3].astype(np.float64) @ T_cam_velo[:3, :3].T + T_cam_velo[:3, 3]
-    X = X[(X[:, 2] > cfg.min_depth) & (X[:, 2] < cfg.max_depth)]
-    uv, _ = project(X, K)
-    h, w = shape
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-    X, uv = X[inside], uv[inside]
-    if cfg.occlusion_window > 1 and len(X):
-        c, r = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
-        zbuf = np.full(h * w, np.inf, np.float32)
-        np.minimum.at(zbuf, r * w + c, X[:, 2].astype(np.float32))
-        k = np.ones((cfg.occlusion_window, cfg.occlusion_window), np.uint8)
-        nearest = cv2.erode(zbuf.reshape(h, w), k, borderType=cv2.BORDER_REPLICATE)
-        X = X[X[:, 2] <= (1.0 + cfg.occlusion_margin) * nearest[r, c]]
-    return X
 
 
 def huber_weights(r: np.ndarray) -> np.ndarray:
@@ -198,13 +167,9 @@ class DirectOdometry:
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> _Frame:
         t0 = time.perf_counter()
-        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255.0 if image.ndim == 3 \
-            else image.astype(np.float32) / 255.0
+        grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
-        X = visible_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey.shape, self.cfg)
-        if len(X):
-            grad = sample(levels[0].stack[..., 1:], project(X, self.calib.K2)[0])
-            X = X[np.hypot(grad[:, 0], grad[:, 1]) > self.cfg.min_gradient]
+        X = textured_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points)
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return _Frame(levels, X)
 
