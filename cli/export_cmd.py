@@ -21,6 +21,13 @@ def default_calibration(tmp: Path) -> list[Path]:
     return seqs + ([real] if real is not None else [])
 
 
+def _number(val: str) -> int | float | str:
+    try:
+        return int(val) if val.isdigit() else float(val) if val.replace(".", "", 1).replace("e-", "", 1).isdigit() else val
+    except ValueError:
+        return val
+
+
 def solver_settings(pairs: list[str]) -> dict:
     """`--set KEY=VALUE` pairs -> {key: int | float | str}, solver settings only."""
     from models.config import check_solver_settings
@@ -30,10 +37,7 @@ def solver_settings(pairs: list[str]) -> dict:
         key, sep, val = p.partition("=")
         if not sep:
             raise D3LVOInputError(None, f"--set takes KEY=VALUE, not {p!r}")
-        try:
-            out[key] = int(val) if val.isdigit() else float(val) if val.replace(".", "", 1).replace("e-", "", 1).isdigit() else val
-        except ValueError:
-            out[key] = val
+        out[key] = tuple(_number(v) for v in val.split(",")) if "," in val else _number(val)
     check_solver_settings(out)
     return out
 
@@ -47,8 +51,10 @@ def export_command(
     width: int | None = typer.Option(None, "--width", help="Input width (default: the checkpoint's)."),
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
     precision: str = typer.Option("fp32", "--precision", help="fp32 | fp16 | int8 (static, QDQ, per-channel)."),
-    solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (gn_points, "
-                                     "gn_iters, gn_huber, gn_damping, gn_lidar_pool), e.g. --set gn_points=dense; repeatable."),
+    solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (point solver: "
+                                     "pt_iters, pt_capacity, pt_min_gradient, pt_stop, pt_damping; cell solver: "
+                                     "gn_points, gn_iters, gn_huber, gn_damping, gn_lidar_pool), e.g. --set "
+                                     "pt_iters=6,6,6; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:

@@ -104,9 +104,13 @@ def run_command(
     sc.check()
     odometry = None
     if method == "direct":
-        from d3lvo_deploy.direct import DirectOdometry
+        from d3lvo_deploy.direct import DirectConfig, DirectOdometry
+        from d3lvo_deploy.manifest import load_manifest
 
-        odometry, model_dir = DirectOdometry(seq.calib), None
+        # the classical mode of the model the run would use (the bundled one by default): its
+        # point selection and solver settings, with no learned confidence
+        config = load_manifest(resolve_model_dir(onnx))["model_config"]
+        odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(config)), None
     else:
         model_dir = resolve_model_dir(onnx)
     if viz is not None and (method != "d3lvo" or viz_every < 1):

@@ -34,8 +34,11 @@ def train_command(
     mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
     completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
     preset: str = typer.Option("default", "--preset", help="default (1216x352) | small (the same network at 608x176, CPU)."),
-    pose_head: str = typer.Option("auto", "--pose-head", help="gauss_newton (geometric, the default where there is "
-                                  "depth) | mlp (the paper's regression) | auto."),
+    pose_head: str = typer.Option("auto", "--pose-head", help="points (the direct solver on the LiDAR points under "
+                                  "a learned confidence; the bundled model's) | gauss_newton (on the network's cells; "
+                                  "auto where there is depth) | mlp (the paper's regression) | auto."),
+    init: Path | None = typer.Option(None, "--init", help="Start from this checkpoint's weights where names and "
+                                     "shapes match (e.g. the bundled model's encoder and flow for a new pose head)."),
     batch_size: int = typer.Option(4, "--batch-size", help="Frame pairs per step."),
     lr: float = typer.Option(3e-4, "--lr", help="AdamW learning rate after warm-up (cosine decay to 5 %)."),
     val_every: int = typer.Option(500, "--val-every", help="Steps between validations on --val (the best is kept "
@@ -66,6 +69,10 @@ def train_command(
     if preset not in ("default", "small"):
         raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
     settings = solver_settings(solver)
+    if init is not None and resume is not None:
+        raise D3LVOInputError(init, "--init starts a new training; --resume continues one: give one of them")
+    if init is not None:
+        load_checkpoint(init)  # a bad file is one error before any work
     try:
         cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion,
                                                                          pose_head=pose_head, **settings)
@@ -92,7 +99,7 @@ def train_command(
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
-                     device=device, num_workers=workers)
+                     device=device, num_workers=workers, init=str(init) if init else None)
     rank0 = int(os.environ.get("RANK", "0")) == 0
     with frame_progress() as bar:
         task = bar.add_task("train", total=steps, rate="", visible=rank0)

@@ -18,6 +18,7 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
 from .onnx_model import SessionConfig, StageModel, camera_inputs
+from .points import SolverFrame, point_config, solver_feeds
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 
@@ -65,6 +66,7 @@ class Odometry:
         self.last_timing = FrameTiming()
         self.keep_outputs = False  # keep the last frame's intermediate tensors in `last` (for --viz)
         self.last: dict = {}
+        self.points = point_config(self.model.config) if self.model.point_solver else None
         self.reset()
 
     @property
@@ -98,7 +100,8 @@ class Odometry:
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
         rgb = pre.rgb_input(image)
-        inv = pre.invdepth_input(clean_scan(points) if self.model.depth_input != "none" else None)
+        scan = clean_scan(points) if self.model.depth_input != "none" else None
+        inv = pre.invdepth_input(scan)
         t["project"] = (time.perf_counter() - t0) * 1000
         t0 = time.perf_counter()
         if self.keep_outputs:
@@ -112,6 +115,10 @@ class Odometry:
         t0 = time.perf_counter()
         enc = self.model.encode(rgb, inv, sparse)
         t["encoder"] = (time.perf_counter() - t0) * 1000
+        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
+            t0 = time.perf_counter()
+            enc["solver_frame"] = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points)
+            t["project"] += (time.perf_counter() - t0) * 1000
         self.last_timing = FrameTiming(t)
         return enc
 
@@ -121,6 +128,9 @@ class Odometry:
         t0 = time.perf_counter()
         if self._prev is not None:
             camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None
+            if self.model.point_solver:
+                camera.update(solver_feeds(self._prev["solver_frame"], enc["solver_frame"], self.calib.K2,
+                                           self.points.capacity))
             out = self.model.flow_pose(self._prev, enc, camera)
             if self.keep_outputs:
                 self.last["flowpose"] = out

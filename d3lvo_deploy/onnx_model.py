@@ -19,15 +19,19 @@ from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import load_manifest
 
+# the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS)
+CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics")
+
+
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:
     """Map two frames' encoder outputs (`feat_lK`, `invdepth_lK`, `grey_lK`) onto the flow+pose
     inputs (`feat1_lK`, `feat2_lK`, ...): suffix 1 is frame t-1, suffix 2 frame t. The
     Gauss-Newton head's `intrinsics` and `init_pose` come from `camera`."""
     feeds = {}
     for name in input_names:
-        if name in ("intrinsics", "init_pose"):
+        if name in CAMERA_AND_SOLVER_INPUTS:
             if camera is None or name not in camera:
-                raise ValueError(f"the flow+pose graph needs {name!r} (a Gauss-Newton pose head)")
+                raise ValueError(f"the flow+pose graph needs {name!r} (a Gauss-Newton or point pose head)")
             feeds[name] = np.ascontiguousarray(camera[name], dtype=np.float32)
             continue
         frame, key = name.split("_", 1)
@@ -63,6 +67,8 @@ class StageModel:
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
         self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
         self.geometric = "init_pose" in self.input_names("flowpose")
+        # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
+        self.point_solver = "points1" in self.input_names("flowpose")
 
     @staticmethod
     def _check_io(path: Path, sess, st: dict) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import onnx
 import torch
+import torch.nn.functional as F
 
 import d3lvo_deploy
 from d3lvo_deploy.errors import D3LVOInputError
@@ -84,6 +85,8 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
     enc_by = dict(zip(enc.output_names, enc_out))
     fp = FlowPoseStage(model)
     camera = {"intrinsics": nominal_intrinsics(model.cfg), "init_pose": torch.eye(4)[None]}
+    if model.cfg.point_solver:
+        camera.update(_solver_sample(model, h, w, g))
     flowpose = [camera[n] if n in camera else enc_by[n.replace("1_", "_").replace("2_", "_")] for n in fp.input_names]
     return {
         "completion": (rgb, inv),
@@ -92,9 +95,28 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
     }
 
 
+def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str, torch.Tensor]:
+    """Point-solver inputs for tracing: a smooth random texture a little larger than the view
+    (the camera's size is a dynamic axis) and points in front of it, the last half masked out."""
+    H, W = h + 12, w + 14
+    image = F.interpolate(torch.rand(1, 1, H // 8, W // 8, generator=g), size=(H, W), mode="bilinear")
+    n = model.cfg.pt_capacity
+    z = 5.0 + 30.0 * torch.rand(1, n, generator=g)
+    K = nominal_intrinsics(model.cfg)
+    u, v = torch.rand(1, n, generator=g) * (W - 1), torch.rand(1, n, generator=g) * (H - 1)
+    pts = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[0, 3]) / K[0, 1] * z, z], -1)
+    mask = (torch.arange(n) < n // 2).float()[None]
+    return {"image1": image, "image2": torch.roll(image, 1, -1), "points1": pts, "point_mask1": mask,
+            "image_intrinsics": K}
+
+
 def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> None:
     names = list(module.input_names) + list(module.output_names)
-    dynamic = {n: {0: "batch"} for n in names} if dynamic_batch else None
+    dynamic = {n: {0: "batch"} for n in names} if dynamic_batch else {}
+    for n in ("image1", "image2"):  # the point solver reads the camera's images at their own size
+        if n in module.input_names:
+            dynamic.setdefault(n, {}).update({2: "image_height", 3: "image_width"})
+    dynamic = dynamic or None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below
         torch.onnx.export(module, args, str(path), input_names=module.input_names, output_names=module.output_names,

@@ -18,6 +18,9 @@ from models.d3lvo import D3LVO
 # (fx, fy, cx, cy at the network input, (B,4)) and the starting relative pose ((B,4,4), the
 # previous pair's motion at run time)
 CAMERA_INPUTS = ("intrinsics", "init_pose")
+# and the point solver's (pose_head="points"): both frames' grey images at the camera's resolution
+# (height and width dynamic), frame t-1's LiDAR point list with its mask, image_2's intrinsics
+SOLVER_INPUTS = ("image1", "image2", "points1", "point_mask1", "image_intrinsics")
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:
@@ -40,13 +43,16 @@ def flowpose_input_names(model: D3LVO) -> list[str]:
     names += [f"grey1_l{lvl}" for lvl in cfg.gn_levels] + [f"grey2_l{lvl}" for lvl in cfg.gn_levels]
     if cfg.gn_lidar:
         names += [f"lidar1_l{lvl}" for lvl in cfg.gn_levels]
+    if cfg.point_solver:  # frame t's depth too: the confidence compares it with the start's prediction
+        return names + [f"invdepth2_l{cfg.flow_levels[-1]}"] + list(CAMERA_INPUTS) + list(SOLVER_INPUTS)
     return names + (list(CAMERA_INPUTS) if cfg.geometric else [])
 
 
 def flowpose_output_names(model: D3LVO) -> list[str]:
     cfg = model.cfg
-    return ([f"flow_l{lvl}" for lvl in cfg.flow_levels] + [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
-            + ["level_poses", "level_weights", "pose", "matrix"])
+    conf = [f"confidence_l{cfg.flow_levels[-1]}", "point_weights"] if cfg.point_solver else \
+        [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
+    return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"]
 
 
 class CompletionStage(nn.Module):
@@ -99,7 +105,10 @@ class FlowPoseStage(nn.Module):
     def forward(self, *tensors):
         byname = dict(zip(self.input_names, tensors))
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
+        solver = {k: byname[k] for k in SOLVER_INPUTS} if self.model.cfg.point_solver else None
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
-                                   levels("lidar1") if self.model.cfg.gn_lidar else None)
-        return (*out["flows"], *out.get("confidence", []), out["poses"], out["weights"], out["pose"], out["matrix"])
+                                   levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))
+        extra = [out["point_weights"]] if "point_weights" in out else []
+        return (*out["flows"], *out.get("confidence", []), *extra, out["poses"], out["weights"], out["pose"],
+                out["matrix"])

@@ -10,7 +10,8 @@ COMPLETIONS = ("learned", "ipbasic")
 
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
-SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool")
+SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
+               "pt_capacity", "pt_min_gradient")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -65,7 +66,17 @@ class D3LVOConfig:
     # with frame t's features (photometric + learned channels, PixLoc / DVL-SLAM style) under
     # per-pixel confidences the network predicts; "mlp" is the paper's regression head; "auto"
     # takes gauss_newton where the mode has depth and mlp for rgb (nothing to back-project).
+    # "points" (the bundled model's): the classical direct tracker on frame t-1's LiDAR point list
+    # at the camera's own resolution, each point weighted by a learned confidence that it does not
+    # move (models/pose_points.py); with confidence 1 it is `d3lvo run --method direct`
     pose_head: str = "auto"
+    # the point solver (pose_head="points"); the defaults are d3lvo_deploy.direct.DirectConfig's and
+    # d3lvo_deploy.points.PointConfig's, so that the network's classical mode is the direct tracker
+    pt_iters: tuple[int, ...] = (6, 6, 6)  # most Gauss-Newton steps per pyrDown level, coarse to fine
+    pt_stop: float = 1e-6
+    pt_damping: float = 1e-4
+    pt_capacity: int = 4096  # length of the point list (the graph's fixed input size)
+    pt_min_gradient: float = 0.02
     gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
     gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
     gn_features: int = 8  # learned feature channels beside the grey image in the residual
@@ -100,9 +111,9 @@ class D3LVOConfig:
             raise ValueError("pyramid levels are 0..3")
         if len(self.completion_widths) != 3:
             raise ValueError("completion_widths needs 3 values (h/2, h/4, h/8)")
-        if self.pose_head not in ("auto", "gauss_newton", "mlp"):
-            raise ValueError(f"pose_head must be auto, gauss_newton or mlp, not {self.pose_head!r}")
-        if self.pose_head == "gauss_newton" and not self.uses_depth:
+        if self.pose_head not in ("auto", "gauss_newton", "mlp", "points"):
+            raise ValueError(f"pose_head must be auto, gauss_newton, mlp or points, not {self.pose_head!r}")
+        if self.pose_head in ("gauss_newton", "points") and not self.uses_depth:
             raise ValueError("pose_head gauss_newton needs depth (back-projection); use pose_head=mlp with mode rgb")
         if any(not 0 <= lvl <= 3 for lvl in self.gn_extra_levels):
             raise ValueError("gn_extra_levels are pyramid levels 0..3")
@@ -123,7 +134,13 @@ class D3LVOConfig:
 
     @property
     def geometric(self) -> bool:
+        """The Gauss-Newton head on the network's cells."""
         return self.pose_head == "gauss_newton" or (self.pose_head == "auto" and self.uses_depth)
+
+    @property
+    def point_solver(self) -> bool:
+        """The direct solver on the LiDAR point list under a learned confidence."""
+        return self.pose_head == "points"
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

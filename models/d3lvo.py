@@ -18,9 +18,11 @@ from .completion import DepthCompletion
 from .config import D3LVOConfig
 from .encoder import PyramidEncoder
 from .flow import ContextNet, FlowLevel, upsample_flow
+from . import gauss_newton as gn
 from .layers import inverse_depth
 from .pose import IDENTITY, PoseLevel, normalise_pose, pose_to_matrix
 from .pose_gn import GaussNewtonPose, nominal_intrinsics
+from .pose_points import PointPose
 
 
 class D3LVO(nn.Module):
@@ -36,9 +38,10 @@ class D3LVO(nn.Module):
         for i, lvl in enumerate(cfg.flow_levels):
             ch = cfg.feature_widths[lvl]
             self.flow[str(lvl)] = FlowLevel(cfg, ch, coarsest=i == 0)
-            if not cfg.geometric:
+            if not (cfg.geometric or cfg.point_solver):
                 self.pose[str(lvl)] = PoseLevel(cfg, cfg.flow_hidden[1] + 2 + (1 if cfg.uses_depth else 0))
         self.gn_pose = GaussNewtonPose(cfg) if cfg.geometric else None
+        self.point_pose = PointPose(cfg) if cfg.point_solver else None
         finest = cfg.flow_levels[-1]
         self.context = ContextNet(cfg.flow_hidden[1] + 2, cfg.context_width) if cfg.context else None
         self.register_buffer("rgb_mean", torch.tensor(cfg.rgb_mean).view(1, 3, 1, 1), persistent=False)
@@ -90,13 +93,16 @@ class D3LVO(nn.Module):
 
     # -- stage 3 -------------------------------------------------------------------------------
     def flow_pose(self, feats1, feats2, depths1, grey1=None, grey2=None, K: torch.Tensor | None = None,
-                  init: torch.Tensor | None = None, lidar1=None) -> dict[str, torch.Tensor | list[torch.Tensor]]:
+                  init: torch.Tensor | None = None, lidar1=None,
+                  solver: dict | None = None, depths2=None) -> dict[str, torch.Tensor | list[torch.Tensor]]:
         """Two frames' encoder outputs -> flows, per-level and final relative pose.
 
         The Gauss-Newton head also takes K (B,4) fx, fy, cx, cy at the network input (default: a
         nominal KITTI-like camera) and init (B,4,4), the starting relative pose (identity by
         default; the runtime passes the previous frame's motion, a constant-velocity start);
-        lidar1 (`lidar_levels` of frame t-1) are the cells it back-projects where `gn_lidar`."""
+        lidar1 (`lidar_levels` of frame t-1) are the cells it back-projects where `gn_lidar`.
+        The point head (`pose_head="points"`) also takes frame t's depths (`depths2`) and `solver`
+        (see PointPose.forward): without it (training) only flows and confidences are computed."""
         ref = feats1[self.cfg.flow_levels[0]]
         b = ref.shape[0]
         pose = torch.tensor(IDENTITY, dtype=ref.dtype, device=ref.device).expand(b, 7)
@@ -112,12 +118,32 @@ class D3LVO(nn.Module):
                 flow = self.context(hidden, flow)
             flows.append(flow)
             hidden_by[lvl], flow_by[lvl] = hidden, flow
-            if self.gn_pose is None:
+            if self.gn_pose is None and self.point_pose is None:
                 x = torch.cat([hidden, flow / 10.0] + ([d1] if d1 is not None else []), 1)
                 pose, conf = self.pose[str(lvl)](x, pose)
                 poses.append(pose)
                 confs.append(conf)
         out: dict = {"flows": flows}
+        if self.point_pose is not None:
+            K = nominal_intrinsics(self.cfg, b, ref.dtype).to(ref.device) if K is None else K
+            init = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(b, 4, 4) if init is None else init
+            f = self._finest
+            res = self.point_pose(hidden, flow, feats1[f], feats2[f], depths1[f], depths2[f], K, init, solver)
+            out.update({"confidence": res["confidence"], "moving_logits": res["moving_logits"]})
+            if "level_matrices" not in res:
+                return out
+            out["point_weights"] = res["point_weights"]
+            # eq. 10 with w = (0, .., 0, 1): the coarse levels start the finer ones; an average
+            # would pull the pose toward their blurrier estimates
+            levels = torch.stack([gn.matrix_to_pose(M) for M in res["level_matrices"]], 1)
+            n = levels.shape[1]
+            weights = torch.zeros_like(levels[..., 0]) + torch.tensor([0.0] * (n - 1) + [1.0], dtype=ref.dtype,
+                                                                       device=ref.device)
+            # the matrix is rebuilt from the unit quaternion: the runtime chains it into the next
+            # pair's start, and float32 drift from a rotation would grow there frame after frame
+            final = normalise_pose(levels[:, -1])
+            out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
+            return out
         if self.gn_pose is None:
             levels = torch.stack(poses, 1)  # (B, L, 7)
             weights = torch.softmax(torch.cat(confs, 1), dim=1)  # (B, L)
@@ -133,9 +159,9 @@ class D3LVO(nn.Module):
         out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
         return out
 
-    def forward(self, rgb1, rgb2, depth1=None, depth2=None, K=None, init=None) -> dict:
+    def forward(self, rgb1, rgb2, depth1=None, depth2=None, K=None, init=None, solver=None) -> dict:
         """rgb: (B,3,H,W) in [0,1]; depth: metres (B,1,H,W): sparse LiDAR, or IP-Basic dense;
-        K, init: see `flow_pose`."""
+        K, init, solver: see `flow_pose`."""
         out: dict = {}
         if self.cfg.uses_depth:
             dense = self.complete(torch.cat([rgb1, rgb2]), torch.cat([depth1, depth2]))
@@ -147,5 +173,5 @@ class D3LVO(nn.Module):
         second = lambda xs: [None if x is None else x.chunk(2)[1] for x in xs]  # noqa: E731
         lidar = self.lidar_levels(inverse_depth(depth1, self.cfg.min_depth)) if self.cfg.gn_lidar else None
         out.update(self.flow_pose(first(feats), second(feats), first(depths), first(greys), second(greys), K, init,
-                                  lidar))
+                                  lidar, solver, second(depths)))
         return out

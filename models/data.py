@@ -23,6 +23,7 @@ from torch.utils.data import Dataset
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
 from d3lvo_deploy.frames import FramePreprocessor
+from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.projection import View, sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
 from d3lvo_deploy.synth.generator import decode_kitti_flow
@@ -115,8 +116,26 @@ class FrameLoader:
                          for a in (A[0, 0] * flow[..., 0], A[1, 1] * flow[..., 1], valid)])
 
     def motion_mask(self, i: int) -> np.ndarray | None:
+        """1 on pixels of things that move on their own; None where nobody knows (real KITTI). A
+        synthetic drive rendered without traffic has no motion_2/: nothing in it moves."""
         m = self._png("motion_2", i)
-        return None if m is None else self.view.apply_depth((m > 0).astype(np.float32))
+        if m is None:
+            return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
+        return self.view.apply_depth((m > 0).astype(np.float32))
+
+    @property
+    def static_synthetic(self) -> bool:
+        meta = self.seq.root / "synth.json"
+        if not meta.is_file():
+            return False
+        import json
+
+        return not json.loads(meta.read_text()).get("traffic", 0)
+
+    def solver_frame(self, i: int) -> SolverFrame:
+        """Frame i as the point solver reads it (camera resolution, textured LiDAR points)."""
+        return SolverFrame.of(self.seq.image(i), self.seq.scan(i), self.seq.calib.T_cam2_velo, self.seq.calib.K2,
+                              point_config(self.cfg.to_dict()))
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
@@ -150,6 +169,13 @@ class PairDataset(Dataset):
         loader = self.loaders[k]
         gt = loader.seq.ground_truth.poses
         return change_frame(relative(gt[i - 1], gt[i]), loader.seq.calib.T_cam2_cam0)
+
+    def solver_inputs(self, idx: int) -> dict[str, torch.Tensor]:
+        """The point solver's inputs for sample idx, unaugmented (evaluation; batch of one)."""
+        k, i = self.items[idx]
+        L = self.loaders[k]
+        feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i), L.seq.calib.K2, self.cfg.pt_capacity)
+        return {n: torch.from_numpy(np.ascontiguousarray(a)) for n, a in feeds.items()}
 
     def identity_errors(self) -> tuple[float, float]:
         """Mean |t|_1 and |q - q_identity|^2 over all pairs: eq. 11's error terms for a network that

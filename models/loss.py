@@ -26,6 +26,8 @@ class LossConfig:
     s_q_init: float = -3.0
     completion_weight: float = 0.2  # L1 (m) on depth GT where the data has it (synthetic depth_2)
     flow_weight: float = 0.5  # EPE (cells of each level) against the rigid flow of GT depth + GT pose
+    # binary cross-entropy of the point head's 'moves on its own' logits against the motion masks
+    motion_weight: float = 1.0
 
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from d3lvo_deploy.geometry import accumulate, change_frame
+from d3lvo_deploy.points import solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 
 from .data import FrameLoader
@@ -24,7 +25,7 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
     dev = next(model.parameters()).device
     K = torch.tensor([[loader.K[0, 0], loader.K[1, 1], loader.K[0, 2], loader.K[1, 2]]], dtype=torch.float32,
                      device=dev)
-    prev = None
+    prev = solver_prev = None
     motion = torch.eye(4, device=dev)[None]  # image_2 motion of the previous pair: the GN head's start
     rel = []
     for i in range(start, end):
@@ -32,10 +33,15 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
         depth = torch.from_numpy(loader.depth_input(i))[None, None].to(dev)
         dense = model.complete(rgb, depth) if model.cfg.uses_depth else None
         cur = (*model.encode(rgb, dense), model.lidar_levels(inverse_depth(depth, model.cfg.min_depth)))
+        solver_cur = loader.solver_frame(i) if model.cfg.point_solver else None
         if prev is not None:
-            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3])
+            solver = None
+            if solver_cur is not None:
+                feeds = solver_feeds(solver_prev, solver_cur, seq.calib.K2, model.cfg.pt_capacity)
+                solver = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev) for k, v in feeds.items()}
+            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
             motion = out["matrix"]
             A2 = motion[0].double().cpu().numpy()
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
-        prev = cur
+        prev, solver_prev = cur, solver_cur
     return accumulate(np.array(rel).reshape(-1, 4, 4))

@@ -48,6 +48,8 @@ class TrainConfig:
     val_every: int = 500
     ckpt_every: int = 100
     seed: int = 0
+    # start from these weights where names and shapes match (e.g. a model with another pose head)
+    init: str | None = None
     num_workers: int = 0
     device: str = "auto"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
@@ -115,6 +117,20 @@ def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     return (pred - gt).abs()[mask].mean()
 
 
+def motion_loss(out: dict, batch: dict, device) -> torch.Tensor:
+    """BCE of the 'moves on its own' logits against the share of moving pixels in each cell's
+    window, on samples that have motion masks (synthetic drives)."""
+    if "moving_logits" not in out:
+        return torch.zeros((), device=device)
+    logits = out["moving_logits"]
+    moving = batch["moving"].to(device)
+    known = moving.flatten(1).amin(1) >= 0
+    if not known.any():
+        return torch.zeros((), device=device)
+    target = cell_pool(moving.clamp(min=0), moving.shape[-1] // logits.shape[-1])
+    return F.binary_cross_entropy_with_logits(logits[known], target[known])
+
+
 def cell_pool(x: torch.Tensor, s: int) -> torch.Tensor:
     """Mean over the (s+1)-wide window centred on each level cell's pixel s*i, the encoder's
     sampling (a plain s-wide pooling would centre it at s*i + (s-1)/2, half a cell off)."""
@@ -170,10 +186,12 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
     conf_labels: dict[int, list[np.ndarray]] = {}
     for i in idx:
         b = {k: v[None] for k, v in data[int(i)].items()}
+        solver = {k: v.to(dev) for k, v in data.solver_inputs(int(i)).items()} if model.cfg.point_solver else None
         out = model(b["rgb1"].to(dev), b["rgb2"].to(dev), b["depth1"].to(dev), b["depth2"].to(dev),
-                    b["K"].to(dev), b["init"].to(dev))
+                    b["K"].to(dev), b["init"].to(dev), solver)
         if float(b["moving"].min()) >= 0 and "confidence" in out:
-            for lvl, c in zip(model.cfg.gn_levels, out["confidence"]):
+            levels = (model.cfg.flow_levels[-1],) if model.cfg.point_solver else model.cfg.gn_levels
+            for lvl, c in zip(levels, out["confidence"]):
                 moving = cell_pool(b["moving"], b["moving"].shape[-1] // c.shape[-1]) > 0.5  # as the flow targets
                 conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
                 conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
@@ -191,6 +209,15 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
         if a is not None:
             res[f"moving_auroc_l{lvl}"] = a
     return res
+
+
+def load_matching(model: D3LVO, path: str) -> int:
+    """Copy a checkpoint's weights into `model` where name and shape agree; returns how many."""
+    theirs = load_checkpoint(path)["model"]
+    mine = model.state_dict()
+    take = {k: v for k, v in theirs.items() if k in mine and mine[k].shape == v.shape}
+    model.load_state_dict(take, strict=False)
+    return len(take)
 
 
 class EpochSampler(Sampler):
@@ -253,6 +280,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         for g, base in zip(opt.param_groups, sched.base_lrs):
             g["lr"] = base * lr_factor(step, tc.warmup, tc.steps)
 
+    elif tc.init:
+        load_matching(model, tc.init)
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
     if len(data) == 0:
@@ -289,10 +318,14 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 ddp_model.train()
                 out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
                                 b["K"].to(device), b["init"].to(device))
-                pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
+                if "poses" in out:
+                    pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
+                else:  # the point head: its pose is the solver's; its confidence learns from the masks
+                    pose_loss, parts = torch.zeros((), device=device), {}
                 comp = completion_loss(out, b, device)
                 fl = flow_loss(out["flows"], b, device)
-                loss = pose_loss + tc.loss.completion_weight * comp + tc.loss.flow_weight * fl
+                mv = motion_loss(out, b, device)
+                loss = pose_loss + tc.loss.completion_weight * comp + tc.loss.flow_weight * fl + tc.loss.motion_weight * mv
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss became {float(loss)} at step {step}")
                 opt.zero_grad(set_to_none=True)
@@ -311,6 +344,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 step += 1
                 record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),
                           "completion_l1": float(comp.detach()), "flow_epe": float(fl.detach()),
+                          "motion_bce": float(mv.detach()),
                           "s_t": float(criterion.s_t.detach()),
                           "s_q": float(criterion.s_q.detach()), **parts,
                           "seconds": time.perf_counter() - t0}

@@ -1,0 +1,110 @@
+"""P of eq. 8-9 as the point solver under a learned confidence: what the network adds to a classical tracker.
+
+The flow estimator's last hidden state and the disagreement between its flow and the rigid flow
+of the starting motion (constant velocity at run time) go through a small conv net that predicts,
+per cell of the finest flow level, the logit that the cell lies on something that moves on its
+own. It is trained directly against the synthetic drives' motion masks (binary cross-entropy,
+`models.train`). Each LiDAR point of frame t-1 takes the confidence 1 - p(moving) of the cell it
+projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
+static scene the confidence stays near 1 and the pose is the classical one; a truck that keeps
+the ego speed gets weight near 0 instead of pulling the pose along.
+
+Why not regress the pose (the paper's MLP) or weight cells of a half-size view: measured in
+docs/evaluation.md, both lost to the classical tracker, whose only weakness is that it cannot
+tell what moves.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from . import gauss_newton as gn
+from .config import D3LVOConfig
+from .flow import warp
+from .layers import conv
+from .point_solver import SolverSettings, project, solve
+
+
+class MovingLogits(nn.Module):
+    """Per-cell logit of 'moves on its own'; starts at p = 0.05 everywhere (nearly classical).
+    Dilated convs: a vehicle's interior has no texture, its evidence is at its edges, up to ~15
+    cells away."""
+
+    def __init__(self, cin: int, width: int = 32):
+        super().__init__()
+        self.net = nn.Sequential(conv(cin, width, k=1), conv(width, width, dilation=1), conv(width, width, dilation=2),
+                                 conv(width, width, dilation=4), nn.Conv2d(width, 1, 3, padding=1))
+        nn.init.normal_(self.net[-1].weight, std=1e-3)
+        nn.init.constant_(self.net[-1].bias, -3.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+def _cell_grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
+    """(1, h*w, 2) cell coordinates (u, v), row-major as `gn.backproject` lays out its points."""
+    v = torch.arange(h, dtype=like.dtype, device=like.device).view(h, 1).expand(h, w)
+    u = torch.arange(w, dtype=like.dtype, device=like.device).view(1, w).expand(h, w)
+    return torch.stack([u, v], -1).reshape(1, h * w, 2)
+
+
+class PointPose(nn.Module):
+    def __init__(self, cfg: D3LVOConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.level = cfg.flow_levels[-1]
+        # hidden state, flow - rigid flow, inverse depth, frame t-1's features, and three residuals
+        # of the rigid motion: depth, features warped rigidly, features warped by the flow
+        self.moving = MovingLogits(cfg.flow_hidden[1] + 2 + 1 + cfg.feature_widths[self.level] + 3)
+        self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping)
+
+    def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
+                      invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,
+                      init: torch.Tensor) -> torch.Tensor:
+        """(B,1,h,w) at the finest flow level, from where the starting motion (constant velocity at
+        run time) fails to explain frame t: the flow, the depth and the features. Inputs are
+        detached: flow, features and depth learn from their own losses."""
+        b, _, h, w = invdepth1.shape
+        scale = float(2 ** (self.level + 1))
+        X, _ = gn.backproject(invdepth1, K, scale, self.cfg.min_depth)
+        Xt = gn.apply(gn.invert(init), X)
+        uv, _ = gn.project(Xt, K, scale)
+        grid = _cell_grid(h, w, X)
+        rigid = (uv - grid).transpose(1, 2).reshape(b, 2, h, w)
+        expected = self.cfg.min_depth / Xt[..., 2].clamp(min=0.1)
+        seen = gn.sample(invdepth2, uv)[:, 0]
+        depth_res = ((seen - expected) / expected.clamp(min=1e-3)).clamp(-1.0, 1.0).reshape(b, 1, h, w)
+        rigid_res = (gn.sample(feat2, uv).reshape(feat1.shape) - feat1).abs().mean(1, keepdim=True)
+        flow_res = (warp(feat2, flow) - feat1).abs().mean(1, keepdim=True)
+        x = torch.cat([hidden, flow - rigid, invdepth1, feat1, depth_res, rigid_res, flow_res], 1).detach()
+        return self.moving(x)
+
+    def point_confidence(self, confidence: torch.Tensor, points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+        """(B,N): each point takes the confidence of the cell it projects to in the network view
+        (bilinear; points outside the view, the crop's margins, take the nearest border cell)."""
+        uv, _, _ = project(points, K)
+        s = float(2 ** (self.level + 1))  # cell i sits on view pixel s*i
+        h, w = confidence.shape[-2:]
+        grid = torch.stack([2.0 * uv[..., 0] / s / (w - 1) - 1.0, 2.0 * uv[..., 1] / s / (h - 1) - 1.0], -1)
+        return F.grid_sample(confidence, grid.unsqueeze(1), mode="bilinear", padding_mode="border",
+                             align_corners=True)[:, 0, 0]
+
+    def forward(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
+                invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, init: torch.Tensor,
+                solver: dict | None) -> dict:
+        """Tensors at the finest flow level; K (B,4) of the network view; init (B,4,4) the start.
+        `solver`: image1, image2 (B,1,H,W) grey at the camera's resolution, points1 (B,N,3),
+        point_mask1 (B,N), image_intrinsics (B,4); without it (training) only the logits."""
+        logits = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init)
+        confidence = torch.sigmoid(-logits)
+        out = {"moving_logits": logits, "confidence": [confidence]}
+        if solver is None:
+            return out
+        weight = solver["point_mask1"] * self.point_confidence(confidence, solver["points1"], K)
+        levels = solve(solver["image1"], solver["image2"], solver["points1"], weight, solver["image_intrinsics"],
+                       init, self.settings)
+        out["point_weights"] = weight
+        out["level_matrices"] = levels
+        return out

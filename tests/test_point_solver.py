@@ -1,0 +1,164 @@
+"""The network's point solver: the classical tracker with learned weights, checked against the numpy
+tracker (written separately), cv2, hand-built geometry and its own ONNX export."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry  # noqa: E402
+from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle  # noqa: E402
+from d3lvo_deploy.points import PointConfig, gradients, grey_image, pad_points, textured_points  # noqa: E402
+from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
+from models.point_solver import (SolverSettings, gauss_jordan_solve, masked_median, pyr_down, so3_exp_small,  # noqa: E402
+                                 solve, with_gradients)
+from test_direct import _plane_scene  # noqa: E402
+
+D = torch.float64
+
+
+def _t(a) -> torch.Tensor:
+    return torch.as_tensor(np.ascontiguousarray(a), dtype=D)
+
+
+def _k(K: np.ndarray) -> torch.Tensor:
+    return _t([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]])
+
+
+def test_pyramid_and_gradients_are_cv2s():
+    """pyr_down is cv2.pyrDown (reflect-101 borders, odd sizes round up); the gradient channels are
+    the tracker's central differences with replicated edges."""
+    img = np.random.default_rng(3).uniform(size=(37, 53)).astype(np.float32)
+    ours = pyr_down(torch.from_numpy(img)[None, None])[0, 0].numpy()
+    assert ours.shape == (19, 27) and np.abs(ours - cv2.pyrDown(img)).max() < 1e-6
+    g = with_gradients(torch.from_numpy(img)[None, None])[0].numpy()
+    gx, gy = gradients(img)
+    assert np.abs(g[1] - gx).max() < 1e-6 and np.abs(g[2] - gy).max() < 1e-6
+
+
+def test_small_ops_against_numpy():
+    """Gauss-Jordan against numpy's LU solve; the series exponential against Rodrigues; the masked
+    median against np.median (odd and even counts)."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(3, 6, 6))
+    A = A @ A.transpose(0, 2, 1) + np.eye(6)
+    b = rng.normal(size=(3, 6, 1))
+    assert np.abs(gauss_jordan_solve(_t(A), _t(b)).numpy() - np.linalg.solve(A, b)).max() < 1e-10
+    w = np.array([[0.01, -0.02, 0.03]])
+    assert np.abs(so3_exp_small(_t(w))[0].numpy() - axis_angle_to_rot(w[0])).max() < 1e-12
+    a = rng.uniform(size=(2, 9))
+    mask = np.ones((2, 9))
+    mask[0, 4:] = 0  # 4 values: the mean of the middle two
+    mask[1, 7:] = 0  # 7 values
+    got = masked_median(_t(a), _t(mask))[:, 0].numpy()
+    assert np.allclose(got, [np.median(a[0, :4]), np.median(a[1, :7])])
+
+
+def _plane_inputs(A: np.ndarray, capacity: int = 8192):
+    calib, img0, img1, scan = _plane_scene(A)
+    grey0, grey1 = grey_image(img0), grey_image(img1)
+    X = textured_points(scan, calib.T_cam2_velo, calib.K2, grey0, PointConfig(capacity=capacity))
+    pts, mask = pad_points(X, len(X) + 500)  # a list longer than the points: padding must not count
+    return calib, (img0, img1, scan), (_t(grey0)[None, None], _t(grey1)[None, None], _t(pts), _t(mask)), X
+
+
+def test_recovers_a_known_motion_on_a_textured_plane():
+    """The same hand-built plane as the numpy tracker's test, padded to a fixed list: the motion
+    is recovered within 1 mm and 0.005 deg from a zero-motion start."""
+    A = make_se3(axis_angle_to_rot([0.01, -0.03, 0.005]), [0.1, -0.05, 0.9])
+    calib, _, (g0, g1, pts, mask), X = _plane_inputs(A)
+    assert len(X) > 500
+    est = solve(g0, g1, pts, mask, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1][0].numpy()
+    t_err = np.linalg.norm(est[:3, 3] - A[:3, 3])
+    r_err = np.degrees(rotation_angle(est[:3, :3].T @ A[:3, :3]))
+    assert t_err < 1e-3 and r_err < 0.005
+
+
+def test_zero_weight_points_are_ignored():
+    """Points on the plane's left half moved as if by another object: the tracker, which weighs all
+    of them, is pulled off; weight 0 on them gives the true motion again (what the learned
+    confidence is for)."""
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (img0, img1, _), (g0, g1, pts, mask), X = _plane_inputs(A)
+    left = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) < 310  # and a margin
+    # the other object: frame t shows the left part of the image as if shifted by 25 pixels
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1m = _t(grey_image(moved))[None, None]
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    err = lambda M: float(np.linalg.norm(M[0, :3, 3].numpy() - A[:3, 3]))  # noqa: E731
+    all_weighted = err(solve(g0, g1m, pts, mask, K, init, SolverSettings())[-1])
+    keep = mask.clone()
+    keep[0, : len(X)] = _t(~left)
+    right_only = err(solve(g0, g1m, pts, keep, K, init, SolverSettings())[-1])
+    print(f"translation error: all points {all_weighted * 1000:.1f} mm, moving half weighted 0 {right_only * 1000:.2f} mm")
+    assert right_only < 2e-3 and all_weighted > 10 * right_only
+
+
+def _real_pair():
+    from conftest import shared_path
+
+    return KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
+
+
+def test_confidence_one_is_the_numpy_tracker():
+    """On a real frame pair, the solver with every confidence 1 gives the motion of
+    `d3lvo run --method direct` (numpy, float64, its own loop with a break) within 1e-6 m."""
+    seq = _real_pair()
+    cfg = DirectConfig()
+    odo = DirectOdometry(seq.calib, cfg)
+    for i in (8, 9):
+        odo.register_frame(seq.image(i), seq.scan(i))
+    init, X = odo.motion2.copy(), odo._prev.points
+    want = odo.register_frame(seq.image(10), seq.scan(10))
+    pts, mask = pad_points(X, cfg.points.capacity)
+    got = solve(_t(grey_image(seq.image(9)))[None, None], _t(grey_image(seq.image(10)))[None, None], _t(pts),
+                _t(mask), _k(seq.calib.K2), _t(init)[None],
+                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping))[-1][0].numpy()
+    assert np.linalg.norm(want[:3, 3]) > 0.1  # the car moves
+    assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
+
+
+@pytest.fixture(scope="session")
+def points_model(tmp_path_factory):
+    """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model."""
+    from conftest import make_checkpoint
+    from export.onnx_export import ExportConfig, export_checkpoint
+
+    d = tmp_path_factory.mktemp("points_model")
+    ck = make_checkpoint(d / "ck.pt", pose_head="points")
+    export_checkpoint(ck, ExportConfig(out=d / "onnx"))
+    return ck, d / "onnx"
+
+
+def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_path):
+    """The exported graph, fed by the torch-free runtime at the camera's own size (620x188, traced
+    at another), gives torch's trajectory; both follow the rendered motion to within 3 % per pair."""
+    from d3lvo_deploy.geometry import relatives
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from models.checkpoint import build_model, load_checkpoint
+    from models.predict import predict_sequence
+
+    ck, onnx_dir = points_model
+    torch_traj = predict_sequence(build_model(load_checkpoint(ck)), small_synth)
+    run_sequence(KittiSequence.open(small_synth), onnx_dir, RunConfig(out=tmp_path / "p.txt"))
+    est = read_poses(tmp_path / "p.txt").poses
+    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
+    gt = relatives(KittiSequence.open(small_synth).ground_truth.poses)
+    err = np.linalg.norm(relatives(est)[:, :3, 3] - gt[:, :3, 3], axis=1)
+    assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
+
+
+def test_direct_method_is_the_models_classical_mode(points_model):
+    """`--method direct` takes the point selection and solver settings of the model it stands for."""
+    from d3lvo_deploy.manifest import load_manifest
+
+    cfg = load_manifest(points_model[1])["model_config"]
+    dc = DirectConfig.of_model({**cfg, "pt_iters": [3, 2], "pt_capacity": 999, "pt_min_gradient": 0.05})
+    assert dc.iterations == (3, 2) and dc.levels == 2
+    assert dc.points.capacity == 999 and dc.points.min_gradient == 0.05
+    assert DirectConfig.of_model(cfg) == DirectConfig()  # the defaults agree on both sides
