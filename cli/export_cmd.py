@@ -54,7 +54,7 @@ def export_command(
     solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (point solver: "
                                      "pt_iters, pt_capacity, pt_min_gradient, pt_stop, pt_damping; cell solver: "
                                      "gn_points, gn_iters, gn_huber, gn_damping, gn_lidar_pool), e.g. --set "
-                                     "pt_iters=6,6,6; repeatable."),
+                                     "pt_iters=10,10,10; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:

@@ -70,7 +70,8 @@ def run_command(
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by times.txt, like a live 10 Hz sensor."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
-                               "photometric LiDAR-visual tracker the network is measured against)."),
+                               "photometric LiDAR-visual tracker the network is measured against: the model's "
+                               "own solver and point settings, every point weighted 1)."),
 ) -> None:
     """Estimate the trajectory of a sequence with the ONNX stages (no torch needed)."""
     from d3lvo_deploy.onnx_model import SessionConfig

@@ -34,9 +34,9 @@ HUBER_K = 1.345  # Huber's threshold in sigmas: 95 % efficiency on Gaussian resi
 @dataclass
 class DirectConfig:
     levels: int = 3  # pyramid levels: the full image and (levels - 1) pyrDown halvings
-    # most Gauss-Newton steps per level, coarse to fine. 6 per level tracked the static drives and
-    # the real frames as well as 15 (docs/evaluation.md), at 40 % of the exported solver's ops
-    iterations: tuple[int, ...] = (6, 6, 6)
+    # most Gauss-Newton steps per level, coarse to fine (measured in docs/evaluation.md: fewer
+    # cost accuracy on drives with traffic, and 10 do not converge from a cold start of 0.9 m)
+    iterations: tuple[int, ...] = (15, 15, 15)
     stop_step: float = 1e-6  # stop a level when the step moves no point by more than ~this (m, rad)
     damping: float = 1e-4  # Levenberg-Marquardt lambda relative to diag(H)
     points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked

@@ -85,7 +85,8 @@ def _write_viz(path: Path, view: dict) -> None:
     """One panel of what the network saw for this frame (d3lvo_deploy.viz)."""
     from .viz import frame_panel, write_panel
 
-    panel = frame_panel(view["image"], view["lidar_m"], view["dense_m"], view["flow"], view["confidence"])
+    panel = frame_panel(view["image"], view["lidar_m"], view["dense_m"], view["flow"], view["confidence"],
+                        points_head=view["points_head"])
     try:
         write_panel(path, panel)
     except OSError as e:

@@ -64,7 +64,8 @@ class RerunRecorder:
         if view["flow"] is not None:
             self.rec.log("flow", rr.Image(flow_to_rgb(view["flow"])))
         if view["confidence"] is not None:
-            self.rec.log("confidence", rr.Image(colourise(view["confidence"], 0.0, 2.0)))
+            hi = 1.0 if view.get("points_head") else 2.0  # 1 - p(moves) for the point head
+            self.rec.log("confidence", rr.Image(colourise(view["confidence"], 0.0, hi)))
 
     def close(self) -> None:
         self.rec.flush()

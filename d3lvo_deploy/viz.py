@@ -61,11 +61,13 @@ def network_view(last: dict, to_metres, completed: bool) -> dict:
     flow, conf = finest("flow_l"), finest("confidence_l")
     return {"image": last["image"], "lidar_m": to_metres(last["sparse_invdepth"])[0, 0],
             "dense_m": to_metres(last["dense_invdepth"])[0, 0] if completed else None,
-            "flow": None if flow is None else out[flow][0], "confidence": None if conf is None else out[conf][0, 0]}
+            "flow": None if flow is None else out[flow][0], "confidence": None if conf is None else out[conf][0, 0],
+            # the point head's confidence is 1 - p(moves on its own), in (0, 1); the cell head's in (0, 2)
+            "points_head": "point_weights" in out}
 
 
 def frame_panel(image: np.ndarray, sparse_m: np.ndarray, dense_m: np.ndarray | None, flow: np.ndarray | None,
-                confidence: np.ndarray | None, max_depth: float = 80.0) -> np.ndarray:
+                confidence: np.ndarray | None, max_depth: float = 80.0, points_head: bool = False) -> np.ndarray:
     """Rows of equal width (the network view's): image, LiDAR depth, completed depth, flow,
     confidence; each with a label and colour bar. Depth in metres (0 = none), flow (2,h,w) in
     cells of its level, confidence (h,w) of the finest Gauss-Newton level."""
@@ -84,7 +86,10 @@ def frame_panel(image: np.ndarray, sparse_m: np.ndarray, dense_m: np.ndarray | N
         wheel = flow_to_rgb(np.stack(np.meshgrid(np.linspace(-1, 1, 64), np.zeros(1))), 1.0)
         rows += [_strip(w, f"flow (finest level, HSV: hue = direction, saturation up to {mag:.1f} cells)",
                         "left", "right", wheel), up(flow_to_rgb(flow, mag), cv2.INTER_LINEAR)]
-    if confidence is not None:
+    if confidence is not None and points_head:
+        rows += [_strip(w, "confidence that it does not move (the LiDAR points' weights)", "0", "1", _ramp(0, 1)),
+                 up(colourise(confidence, 0.0, 1.0), cv2.INTER_NEAREST)]
+    elif confidence is not None:
         rows += [_strip(w, "pose confidence (finest Gauss-Newton level; 1 = initial)", "0", "2", _ramp(0, 2)),
                  up(colourise(confidence, 0.0, 2.0), cv2.INTER_NEAREST)]
     return np.concatenate(rows, 0)

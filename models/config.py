@@ -11,7 +11,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient")
+               "pt_capacity", "pt_min_gradient", "pt_conf_power")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -72,11 +72,15 @@ class D3LVOConfig:
     pose_head: str = "auto"
     # the point solver (pose_head="points"); the defaults are d3lvo_deploy.direct.DirectConfig's and
     # d3lvo_deploy.points.PointConfig's, so that the network's classical mode is the direct tracker
-    pt_iters: tuple[int, ...] = (6, 6, 6)  # most Gauss-Newton steps per pyrDown level, coarse to fine
+    pt_iters: tuple[int, ...] = (15, 15, 15)  # most Gauss-Newton steps per pyrDown level, coarse to fine
     pt_stop: float = 1e-6
     pt_damping: float = 1e-4
-    pt_capacity: int = 4096  # length of the point list (the graph's fixed input size)
+    pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
+    # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
+    # powers push what is likely moving further down while static points (confidence ~0.9) keep
+    # most of their weight; confidence 1 stays weight 1, the classical tracker
+    pt_conf_power: float = 1.0
     gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
     gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
     gn_features: int = 8  # learned feature channels beside the grey image in the residual

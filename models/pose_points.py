@@ -102,7 +102,7 @@ class PointPose(nn.Module):
         out = {"moving_logits": logits, "confidence": [confidence]}
         if solver is None:
             return out
-        weight = solver["point_mask1"] * self.point_confidence(confidence, solver["points1"], K)
+        weight = solver["point_mask1"] * self.point_confidence(confidence, solver["points1"], K) ** self.cfg.pt_conf_power
         levels = solve(solver["image1"], solver["image2"], solver["points1"], weight, solver["image_intrinsics"],
                        init, self.settings)
         out["point_weights"] = weight
