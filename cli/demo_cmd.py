@@ -29,7 +29,9 @@ def demo_command(
     from d3lvo_deploy.extras import require
 
     require("embreex", "matplotlib", what="d3lvo demo (it renders a drive and plots it)")
+    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
     from d3lvo_deploy.evaluation import EvalReport, evaluate
+    from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import read_poses
@@ -65,7 +67,16 @@ def demo_command(
         summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True), sc,
                                progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{1000 / max(ms, 1e-6):.1f} frames/s"))
     res = evaluate(seq.ground_truth, read_poses(poses_path), name="synthetic held-out")
-    out.print(report_table(EvalReport([res], "none")))
+    # the baseline beside it: the model's classical mode, the same solver with every point weighted 1
+    direct_path = out_dir / "synthetic_heldout_direct.txt"
+    with frame_progress() as bar:
+        task = bar.add_task("direct", total=len(seq), rate="")
+        run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
+                     odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])),
+                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{1000 / max(ms, 1e-6):.1f} frames/s"))
+    base = evaluate(seq.ground_truth, read_poses(direct_path), name="synthetic held-out")
+    out.print(report_table({"D3LVO (ONNX)": EvalReport([res], "none"),
+                            "--method direct (no learning)": EvalReport([base], "none")}))
     out.print(latency_table(summary.stats()))
     plot = plot_trajectories(out_dir / "synthetic_heldout.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
                              title=f"held-out synthetic drive: t_rel {_fmt(res.t_rel)} %, "

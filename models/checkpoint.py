@@ -71,10 +71,14 @@ def build_model(ck: dict):
     return model.eval()
 
 
-def slim_checkpoint(src: str | Path, dst: str | Path) -> Path:
-    """Weights, config and training record only (no optimizer state): what ships in the package."""
+def slim_checkpoint(src: str | Path, dst: str | Path, solver: dict | None = None) -> Path:
+    """Weights, config and training record only (no optimizer state): what ships in the package.
+    `solver`: solver settings without weights to store instead of the training's (SOLVER_KEYS)."""
+    from .config import check_solver_settings
+
     ck = load_checkpoint(src)
     keep = {k: ck[k] for k in ("step", "history", "train_config", "loss") if k in ck}
     model = build_model(ck)
-    save_checkpoint(dst, model, ck["config"], **keep)
+    check_solver_settings(solver or {})
+    save_checkpoint(dst, model, replace(ck["config"], **(solver or {})), **keep)
     return Path(dst)
