@@ -11,7 +11,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient", "pt_conf_power")
+               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -81,6 +81,9 @@ class D3LVOConfig:
     # powers push what is likely moving further down while static points (confidence ~0.9) keep
     # most of their weight; confidence 1 stays weight 1, the classical tracker
     pt_conf_power: float = 1.0
+    # above 0: a point's weight is 1 where its confidence exceeds this, else 0 (what the network
+    # thinks likely moves is dropped, the rest is tracked exactly as the classical tracker does)
+    pt_gate: float = 0.0
     gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
     gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
     gn_features: int = 8  # learned feature channels beside the grey image in the residual

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import torch
 
@@ -21,7 +22,7 @@ def main() -> None:
     ap.add_argument("seqs", nargs="+")
     ap.add_argument("--pairs", type=int, default=48, help="evenly spaced pairs per sequence")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     model = build_model(load_checkpoint(args.ckpt))
     for s in args.seqs:
         m = pair_metrics(model, [s], pairs=args.pairs)

@@ -102,7 +102,10 @@ class PointPose(nn.Module):
         out = {"moving_logits": logits, "confidence": [confidence]}
         if solver is None:
             return out
-        weight = solver["point_mask1"] * self.point_confidence(confidence, solver["points1"], K) ** self.cfg.pt_conf_power
+        conf = self.point_confidence(confidence, solver["points1"], K)
+        if self.cfg.pt_gate > 0:
+            conf = (conf > self.cfg.pt_gate).to(conf.dtype)
+        weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
         levels = solve(solver["image1"], solver["image2"], solver["points1"], weight, solver["image_intrinsics"],
                        init, self.settings)
         out["point_weights"] = weight
