@@ -18,7 +18,9 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.geometry import relative, rotation_angle_precise
 from d3lvo_deploy.bundled import find_real_frames
+from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
+from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import D3LVOConfig
@@ -27,7 +29,10 @@ from .onnx_export import sha256
 
 STAGE_TOL = 1e-4  # |torch - ort| <= STAGE_TOL * max(1, |torch|): absolute for small values, relative for large
 POSE_T_TOL = 1e-5  # m (float32 chains measured ~1e-6 m on the bundled model)
-POSE_R_TOL = 1e-5  # deg
+# deg: a float32 rotation matrix resolves ~1e-5 deg, and the point solver's 45 reweighted steps
+# carry rounding differences between the engines' kernels that far (1.1e-5 deg measured over the
+# real frames on the bundled model); 5e-5 deg is 0.09 mm sideways per 100 m
+POSE_R_TOL = 5e-5
 
 
 @dataclass
@@ -118,6 +123,8 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     K = torch.tensor([[pre.K[0, 0], pre.K[1, 1], pre.K[0, 2], pre.K[1, 2]]], dtype=torch.float32)
     raw_prev = None
     geometric = ort_model.geometric
+    points = point_config(ort_model.config) if ort_model.point_solver else None
+    solver_prev = None
     for i in range(n):
         rgb = pre.rgb_input(seq.image(i))
         inv = pre.invdepth_input(seq.scan(i) if cfg.uses_depth else None)
@@ -140,9 +147,16 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
         for k in enc_names:
             diff("encoder", k).update(enc_t[k], enc_same[k])
         enc_o = ort_model.encode(rgb, dense_o, inv)
+        # the point solver's inputs are made by numpy on both sides: the same for torch and the engine
+        solver_cur = None if points is None else SolverFrame.of(seq.image(i), clean_scan(seq.scan(i)),
+                                                                seq.calib.T_cam2_velo, seq.calib.K2, points)
+        feeds = None if solver_prev is None else solver_feeds(solver_prev, solver_cur, seq.calib.K2, points.capacity)
         if prev_t is not None:
             cam_t = camera_inputs(pre.K, motion_t) if geometric else None
             cam_o = camera_inputs(pre.K, motion_o) if geometric else None
+            if feeds is not None:
+                cam_t.update(feeds)
+                cam_o.update(feeds)
             fp_t = _flowpose_outputs(model, prev_t, enc_t, cam_t)
             fp_same = ort_model.flow_pose(prev_t, enc_t, cam_t)
             for k in fp_t:
@@ -155,15 +169,17 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
         raw = _forward_inputs(pre, seq, i, cfg)
         if raw_prev is not None:
             init = torch.from_numpy(motion_f.astype(np.float32))[None] if geometric else None
-            fwd = model(raw_prev[0], raw[0], raw_prev[1], raw[1], K if geometric else None, init)
+            solver = None if feeds is None else {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in feeds.items()}
+            fwd = model(raw_prev[0], raw[0], raw_prev[1], raw[1], K if geometric else None, init, solver)
             motion_f = fwd["matrix"][0].double().numpy()
             # the engine's flows and confidences against forward's, output by output
             for lvl, f in zip(cfg.flow_levels, fwd["flows"]):
                 diff("vs_forward", f"flow_l{lvl}").update(f.numpy(), out_o[f"flow_l{lvl}"])
-            for lvl, c in zip(cfg.gn_levels if "confidence" in fwd else (), fwd.get("confidence", [])):
+            conf_levels = (cfg.flow_levels[-1],) if cfg.point_solver else cfg.gn_levels
+            for lvl, c in zip(conf_levels if "confidence" in fwd else (), fwd.get("confidence", [])):
                 diff("vs_forward", f"confidence_l{lvl}").update(c.numpy(), out_o[f"confidence_l{lvl}"])
             chain_f.append(motion_f)
-        prev_t, prev_o, raw_prev = enc_t, enc_o, raw
+        prev_t, prev_o, raw_prev, solver_prev = enc_t, enc_o, raw, solver_cur
     rep.chained_t_m, rep.chained_r_deg = _largest_motion(relative(np.array(chain_t), np.array(chain_o)))
     rep.reference_t_m, rep.reference_r_deg = _largest_motion(relative(np.array(chain_f), np.array(chain_o)))
     rep.motion_t_m, rep.motion_r_deg = _largest_motion(np.array(chain_f))

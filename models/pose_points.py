@@ -1,9 +1,11 @@
 """P of eq. 8-9 as the point solver under a learned confidence: what the network adds to a classical tracker.
 
-The flow estimator's last hidden state and the disagreement between its flow and the rigid flow
-of the starting motion (constant velocity at run time) go through a small conv net that predicts,
-per cell of the finest flow level, the logit that the cell lies on something that moves on its
-own. It is trained directly against the synthetic drives' motion masks (binary cross-entropy,
+At the finest flow level, a small conv net reads where the starting motion (constant velocity at
+run time) fails to explain frame t: the disagreement between the learned flow and that motion's
+rigid flow, frame t's depth against the depth the motion predicts, and frame t's features warped
+rigidly and by the flow against frame t-1's, beside the flow estimator's state, the depth and
+frame t-1's features; it predicts per cell the logit that the cell lies on something that moves
+on its own. It is trained directly against the synthetic drives' motion masks (binary cross-entropy,
 `models.train`). Each LiDAR point of frame t-1 takes the confidence 1 - p(moving) of the cell it
 projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
 static scene the confidence stays near 1 and the pose is the classical one; a truck that keeps

@@ -55,3 +55,19 @@ def test_confidence_separates_movers_and_beats_uniform_weights(busy_street):
     # a clip this busy is hard for both (measured: 0.20 against 0.22 m); the margin stated for the
     # confidence is the AUROC's above, the pose must come out ahead
     assert err(net) < err(direct)
+
+
+def test_real_frames_end_near_lidar_odometry():
+    """On the 20 real frames (a truck, a lead car and a passed car move around the camera) the
+    bundled network ends within 0.4 m of LiDAR-only KISS-ICP, its path within 10 % of KISS-ICP's."""
+    from conftest import shared_path
+    from test_direct import _kiss_icp_cam0
+
+    seq = KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
+    ref = _kiss_icp_cam0(seq)
+    odo = Odometry(bundled_model_dir(), seq.calib)
+    est = np.stack([odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))])
+    length = lambda P: float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum())  # noqa: E731
+    end_off = float(np.linalg.norm(est[-1, :3, 3] - ref[-1, :3, 3]))
+    print(f"KISS-ICP path {length(ref):.2f} m; network end {end_off:.2f} m off, path {length(est):.2f} m")
+    assert length(ref) > 3.0 and end_off < 0.4 and abs(length(est) / length(ref) - 1) < 0.1
