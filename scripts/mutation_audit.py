@@ -113,6 +113,19 @@ MUTATIONS = [
              "                            dist.all_reduce(q.grad)\n                            q.grad /= world\n",
              "                            pass\n",
              ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping",)),
+    Mutation("point solver: pyramid levels keep the full-resolution intrinsics", "models/point_solver.py",
+             "        Kl = K * (0.5 ** lvl)", "        Kl = K",
+             ("tests/test_point_solver.py",)),
+    Mutation("point list: padding marked as points", "d3lvo_deploy/points.py",
+             "    mask[0, : len(X)] = 1.0", "    mask[0, :] = 1.0",
+             ("tests/test_point_solver.py",)),
+    Mutation("point solver's median: the upper middle value alone for an even count", "models/point_solver.py",
+             "    lo = torch.floor((n - 1) * 0.5).long()", "    lo = torch.floor(n * 0.5).long()",
+             ("tests/test_point_solver.py",)),
+    Mutation("runtime hands the solver frame t's points instead of frame t-1's", "d3lvo_deploy/odometry.py",
+             'camera.update(solver_feeds(self._prev["solver_frame"], enc["solver_frame"]',
+             'camera.update(solver_feeds(enc["solver_frame"], self._prev["solver_frame"]',
+             ("tests/test_point_solver.py",)),
 ]
 
 
