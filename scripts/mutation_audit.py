@@ -50,7 +50,7 @@ MUTATIONS = [
              "self.relative = change_frame(A2, self.calib.T_cam0_cam2)", "self.relative = A2",
              ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
     Mutation("an untrained network shipped as the bundled model", "", "", "",
-             ("tests/test_default_model.py",), script=UNTRAINED),
+             ("tests/test_default_model.py", "tests/test_confidence.py"), script=UNTRAINED),
     Mutation("INT8 calibrated on RGB scaled by 1e-3 (activation ranges at the wrong scale)", "export/quantize.py",
              "            rgb = pre.rgb_input(seq.image(i))", "            rgb = 1e-3 * pre.rgb_input(seq.image(i))",
              ("tests/test_export.py::test_reduced_precision_exports",)),
