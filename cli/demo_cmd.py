@@ -105,12 +105,8 @@ def demo_command(
 
 def _rendered(seq_dir: Path, cfg) -> bool:
     """Whether seq_dir already holds this exact drive, every frame written."""
-    from dataclasses import asdict
-
-    from d3lvo_deploy.synth.generator import GENERATOR_VERSION
-
     meta = seq_dir / "synth.json"
     if not meta.is_file():
         return False
-    same = json.loads(meta.read_text()) == json.loads(json.dumps({"generator_version": GENERATOR_VERSION, **asdict(cfg)}))
+    same = json.loads(meta.read_text()) == json.loads(json.dumps(cfg.meta()))  # what the generator writes
     return same and len(list((seq_dir / "image_2").glob("*.png"))) == cfg.frames and (seq_dir / "poses.txt").is_file()

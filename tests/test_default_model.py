@@ -80,3 +80,18 @@ def test_bundled_model_tracks_a_held_out_clip(tmp_path):
     m = pair_metrics(build_model(load_checkpoint(BUNDLED / "default.pt")), [str(seq_dir)], pairs=15)
     for lvl in load_manifest(BUNDLED)["model_config"]["flow_levels"]:
         assert m[f"flow_epe_l{lvl}"] < 0.8 * m[f"flow_epe_l{lvl}_zero"], m
+
+
+def test_demo_reuses_a_drive_it_rendered_before(small_synth):
+    """The demo renders its drive once: a folder holding exactly that drive (the generator's own
+    synth.json, every frame) is reused, and one with other settings is not."""
+    from dataclasses import replace
+
+    from cli.demo_cmd import _rendered
+    from d3lvo_deploy.synth.generator import SynthConfig
+    from d3lvo_deploy.synth.sensors import LidarConfig
+
+    cfg = SynthConfig(frames=6, seed=7, width=620, height=188, lidar=LidarConfig(noise_m=0.0, dropout=0.0))
+    assert _rendered(small_synth, cfg)
+    assert not _rendered(small_synth, replace(cfg, seed=8))
+    assert not _rendered(small_synth, replace(cfg, frames=7))
