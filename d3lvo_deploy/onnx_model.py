@@ -9,6 +9,7 @@ returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1'
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,17 @@ def camera_inputs(K: np.ndarray, init: np.ndarray | None = None) -> dict[str, np
             "init_pose": np.asarray(np.eye(4) if init is None else init, np.float32).reshape(1, 4, 4)}
 
 
+def _point_solver(stage: dict) -> bool:
+    return any(i["name"] == "points1" for i in stage.get("inputs", []))
+
+
+def single_threaded(sc: SessionConfig) -> SessionConfig:
+    """The point solver's graph on one thread: its ~8,400 nodes per frame are 6x6 matrices and
+    lists of 2,048 points, too small to split; a second thread costs more than it gains (measured
+    with `d3lvo bench`, docs/performance.md)."""
+    return replace(sc, threads=1)
+
+
 class StageModel:
     def __init__(self, model_dir: str | Path, sc: SessionConfig = SessionConfig()):
         self.dir = Path(model_dir)
@@ -60,7 +72,7 @@ class StageModel:
         self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
         for name, st in self.manifest["stages"].items():
             path = self.dir / st["file"]
-            sess = open_session(path, sc, name, st)
+            sess = open_session(path, single_threaded(sc) if _point_solver(st) else sc, name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
