@@ -48,7 +48,7 @@ def train_command(
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
     workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
     solver: list[str] = typer.Option([], "--set", help="Solver setting without weights, KEY=VALUE (pt_iters, "
-                                     "pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_conf_power; gn_points, "
+                                     "pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_conf_power, pt_gate; gn_points, "
                                      "gn_iters, gn_huber, gn_damping, gn_lidar_pool); repeatable; may differ from "
                                      "the checkpoint's on --resume."),
 ) -> None:

@@ -1,8 +1,8 @@
 """A direct LiDAR-visual tracker with no learning: the reference the network must beat.
 
 DVL-SLAM's tracking (Shin, Park, Kim 2018) in numpy, as strong as we can make it without
-learning: every LiDAR return of frame t-1 that lands on image texture is a 3D point (no pooling
-to cells, no resizing of the image); frame t's grey image, at its full resolution and two
+learning: the LiDAR returns of frame t-1 that land on image texture (an evenly spaced 2,048 at
+most, `points.py`) are 3D points (no pooling to cells, no resizing of the image); frame t's grey image, at its full resolution and two
 pyrDown levels, is sampled where the points project, and Gauss-Newton on SE(3) minimises the
 photometric difference, coarse to fine, up to `iterations` steps per level with an early stop,
 from a constant-velocity start. The robust weight is Huber's with its threshold re-estimated

@@ -45,7 +45,7 @@ def calibration_feeds(fp32_dir: Path, seq_dirs: list[Path], max_frames: int = 16
                 enc_in["sparse_invdepth"] = sparse
             feeds["encoder"].append(enc_in)
             enc = model.run("encoder", enc_in)
-            if prev is not None:
+            if prev is not None and not model.point_solver:  # that stage is not quantized (below)
                 names = model.input_names("flowpose")
                 feeds["flowpose"].append(flowpose_feeds(names, prev, enc, camera))
             prev = enc
@@ -98,11 +98,14 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
     for name, st in manifest["stages"].items():
         src, dst = fp32_dir / st["file"], out_dir / st["file"]
         stage_precision = precision
-        if precision == "fp16" and name == "flowpose" and manifest["model_config"].get("pose_head") != "mlp" \
-                and manifest["depth_input"] != "none":
+        point_solver = manifest["model_config"].get("pose_head") == "points"
+        if (precision == "fp16" and name == "flowpose" and manifest["model_config"].get("pose_head") != "mlp"
+                and manifest["depth_input"] != "none") or (name == "flowpose" and point_solver):
             # the Gauss-Newton head stays FP32: its normal equations sum thousands of squared
             # gradients (past FP16's 65504) and its Cholesky and epsilons need more than 11 bits;
-            # converted (solver nodes blocked or not) it returned non-finite poses on real frames
+            # converted (solver nodes blocked or not) it returned non-finite poses on real frames.
+            # The point solver's stage stays FP32 at INT8 too: its Conv is the image pyramid, whose
+            # grey values the photometric residual compares to a few 1e-3
             stage_precision = "fp32"
             onnx.save(onnx.load(str(src)), str(dst))
         elif precision == "fp16":

@@ -121,13 +121,22 @@ class D3LVOConfig:
         if self.pose_head not in ("auto", "gauss_newton", "mlp", "points"):
             raise ValueError(f"pose_head must be auto, gauss_newton, mlp or points, not {self.pose_head!r}")
         if self.pose_head in ("gauss_newton", "points") and not self.uses_depth:
-            raise ValueError("pose_head gauss_newton needs depth (back-projection); use pose_head=mlp with mode rgb")
+            raise ValueError(f"pose_head {self.pose_head} needs depth (LiDAR points); use pose_head=mlp with mode rgb")
         if any(not 0 <= lvl <= 3 for lvl in self.gn_extra_levels):
             raise ValueError("gn_extra_levels are pyramid levels 0..3")
         if self.gn_points not in ("lidar", "dense"):
             raise ValueError(f"gn_points must be lidar or dense, not {self.gn_points!r}")
         if self.gn_lidar_pool not in ("stride", "nearest"):
             raise ValueError(f"gn_lidar_pool must be stride or nearest, not {self.gn_lidar_pool!r}")
+        if not (isinstance(self.pt_iters, (tuple, list)) and self.pt_iters
+                and all(isinstance(n, int) and n >= 1 for n in self.pt_iters)):
+            raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
+        if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):
+            raise ValueError(f"pt_capacity must be a whole number of points, at least 12, not {self.pt_capacity!r}")
+        if not (isinstance(self.pt_conf_power, (int, float)) and self.pt_conf_power > 0):
+            raise ValueError(f"pt_conf_power must be above 0, not {self.pt_conf_power!r}")
+        if not (isinstance(self.pt_gate, (int, float)) and 0 <= self.pt_gate < 1):
+            raise ValueError(f"pt_gate must be in [0, 1), not {self.pt_gate!r}")
         if self.correlation not in ("tiled", "slices", "stacked"):
             raise ValueError(f"correlation must be tiled, slices or stacked, not {self.correlation!r}")
 

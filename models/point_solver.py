@@ -10,7 +10,7 @@ weight per point, its confidence; with every confidence 1 this is exactly the cl
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
 Standard ONNX ops only: Pad + Conv for pyrDown, GridSample for the bilinear samples, TopK for the
-median, MatMul for the normal equations and an unrolled Cholesky for the 6x6 solve.
+median, MatMul for the normal equations and Gauss-Jordan elimination for the 6x6 solve.
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
 
@@ -159,7 +159,8 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
         # scaled to a unit diagonal first: translation and rotation columns differ by orders of
         # magnitude, which float32 elimination without pivoting would not survive
         d = 1.0 / torch.sqrt(diag * (1.0 + s.damping) + 1e-12)
-        Hs = H * d * d.transpose(1, 2) + eye6 * (s.damping * diag * d * d)
+        # a stopped level (no points left, say an empty scan) solves I xi = 0 instead of 0/0
+        Hs = H * d * d.transpose(1, 2) + eye6 * (s.damping * diag * d * d + (1.0 - active))
         xi = -(d * gauss_jordan_solve(Hs, d * g))[..., 0] * active[:, 0]
         dR = so3_exp_small(xi[:, 3:])
         R = dR @ R

@@ -162,3 +162,54 @@ def test_direct_method_is_the_models_classical_mode(points_model):
     assert dc.iterations == (3, 2) and dc.levels == 2
     assert dc.points.capacity == 999 and dc.points.min_gradient == 0.05
     assert DirectConfig.of_model(cfg) == DirectConfig()  # the defaults agree on both sides
+
+
+def test_no_points_no_motion_beyond_the_start():
+    """A pair without points (an empty scan, a textureless frame) stops every level at once, as the
+    numpy tracker's `break` does: the start motion comes back, finite."""
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, _, (g0, g1, pts, mask), _ = _plane_inputs(A)
+    init = make_se3(np.eye(3), [0.0, 0.0, 0.7])
+    out = solve(g0, g1, pts, mask * 0, _k(calib.K2), _t(init)[None], SolverSettings())[-1][0].numpy()
+    assert np.allclose(out, init, atol=1e-12)
+
+
+def test_runtime_steps_past_an_empty_scan(points_model, small_synth):
+    """The runtime's documented fallback for a scan without points: a pose, not an error."""
+    from d3lvo_deploy.odometry import Odometry
+
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(points_model[1], seq.calib)
+    odo.step(seq.image(0), np.zeros((0, 4), np.float32))
+    with pytest.warns(UserWarning, match="no LiDAR points"):
+        pose = odo.step(seq.image(1), np.zeros((0, 4), np.float32))
+    assert np.all(np.isfinite(pose))
+
+
+def test_bad_solver_settings_are_one_clear_error():
+    from d3lvo_deploy.errors import D3LVOInputError
+    from cli.export_cmd import solver_settings
+    from models.config import D3LVOConfig
+
+    with pytest.raises(ValueError, match="pt_iters takes one step count per pyramid level"):
+        D3LVOConfig.small(pose_head="points", **solver_settings(["pt_iters=15"]))
+    with pytest.raises(ValueError, match="pt_gate must be in"):
+        D3LVOConfig.small(pose_head="points", pt_gate=1.5)
+    with pytest.raises(D3LVOInputError, match="solver settings only"):
+        solver_settings(["height=10"])
+
+
+def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, tmp_path):
+    """INT8 quantizes the convolution stages; the point solver's stage (its only Conv is the image
+    pyramid the photometric residual reads) stays FP32, and the quantized folder runs."""
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.odometry import Odometry
+    from export.quantize import quantize_folder
+
+    m = quantize_folder(points_model[1], tmp_path / "int8", "int8", [small_synth])
+    assert m["stages"]["flowpose"]["precision"] == "fp32" and m["stages"]["encoder"]["precision"] == "int8"
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(tmp_path / "int8", seq.calib)
+    poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(3)]
+    assert load_manifest(tmp_path / "int8")["stages"]["flowpose"]["precision"] == "fp32"
+    assert np.linalg.norm(poses[-1][:3, 3]) > 0.5  # it moved, and finitely
