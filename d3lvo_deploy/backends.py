@@ -150,6 +150,9 @@ class OpenVinoSession:
         config = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1", "INFERENCE_PRECISION_HINT": precision}
         if sc.threads:
             config["INFERENCE_NUM_THREADS"] = str(sc.threads)
+        cache = openvino_cache_dir(ov.__version__)
+        if cache is not None:
+            config["CACHE_DIR"] = str(cache)
         try:
             self.compiled = OpenVinoSession._core.compile_model(str(path), "CPU", config)
         except Exception as e:  # OpenVINO raises RuntimeError with a long multi-line text
@@ -170,6 +173,26 @@ class OpenVinoSession:
 
     def end_profiling(self) -> str:
         return ""
+
+
+def openvino_cache_dir(version: str) -> Path | None:
+    """Where OpenVINO keeps compiled models between runs: compiling the point solver's graph takes
+    ~10 s on 2 cores, loading it from the cache under a second. OpenVINO keys each entry by the
+    model's contents and the compile options; the folder adds the engine version and the CPU, so a
+    blob is never read by another OpenVINO or on another machine sharing a home folder.
+    `D3LVO_CACHE` moves it; None (no cache) where it cannot be written."""
+    import hashlib
+
+    from .cpu import cpu_info
+
+    root = Path(os.environ.get("D3LVO_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "d3lvo")
+    cpu = hashlib.sha1(cpu_info().line().encode()).hexdigest()[:10]
+    folder = root / f"openvino-{''.join(c if c.isalnum() or c == '.' else '_' for c in version)}-{cpu}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return folder if os.access(folder, os.W_OK) else None
 
 
 def _port_name(port, wanted: list[str], k: int) -> str:

@@ -154,3 +154,24 @@ def test_bf16_leaves_the_solver_in_f32(small_model):
 
     if {"AVX512-BF16", "AMX-BF16"} & set(cpu_info().isa):
         assert "bfloat16" in hint("encoder") and "bfloat16" in hint("completion")
+
+
+def test_openvino_compiled_models_are_cached_per_engine_and_cpu(small_model, tmp_path, monkeypatch):
+    """A second load reads the compiled graphs from D3LVO_CACHE instead of compiling again (the
+    folder names the OpenVINO version and the CPU), and computes the same numbers."""
+    pytest.importorskip("openvino")
+    from d3lvo_deploy.backends import openvino_cache_dir
+
+    monkeypatch.setenv("D3LVO_CACHE", str(tmp_path / "cache"))
+    _, onnx_dir = small_model
+    first = StageModel(onnx_dir, SessionConfig(backend="openvino"))
+    folders = list((tmp_path / "cache").iterdir())
+    assert len(folders) == 1 and folders[0] == openvino_cache_dir(__import__("openvino").__version__)
+    blobs = sorted(folders[0].glob("*.blob"))
+    assert len(blobs) >= 3  # completion, encoder, flowpose
+    stamps = [b.stat().st_mtime_ns for b in blobs]
+    second = StageModel(onnx_dir, SessionConfig(backend="openvino"))
+    assert [b.stat().st_mtime_ns for b in sorted(folders[0].glob("*.blob"))] == stamps  # read, not rewritten
+    rgb = np.random.default_rng(0).normal(size=(1, 3, first.height, first.width)).astype(np.float32)
+    inv = np.zeros((1, 1, first.height, first.width), np.float32)
+    np.testing.assert_array_equal(first.complete(rgb, inv), second.complete(rgb, inv))
