@@ -280,8 +280,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         for g, base in zip(opt.param_groups, sched.base_lrs):
             g["lr"] = base * lr_factor(step, tc.warmup, tc.steps)
 
-    elif tc.init:
-        load_matching(model, tc.init)
+    elif tc.init and load_matching(model, tc.init) == 0:
+        raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to start from")
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
     if len(data) == 0:

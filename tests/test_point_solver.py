@@ -213,3 +213,28 @@ def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, t
     poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(3)]
     assert load_manifest(tmp_path / "int8")["stages"]["flowpose"]["precision"] == "fp32"
     assert np.linalg.norm(poses[-1][:3, 3]) > 0.5  # it moved, and finitely
+
+
+def test_init_takes_matching_weights_and_refuses_a_foreign_checkpoint(tmp_path, small_synth):
+    """--init copies every tensor whose name and shape fit (a point-head model from a cell-solver
+    checkpoint keeps its encoder), and a checkpoint with nothing that fits is one clear error."""
+    from conftest import make_checkpoint
+    from d3lvo_deploy.errors import D3LVOInputError
+    from models.config import D3LVOConfig
+    from models.d3lvo import D3LVO
+    from models.train import TrainConfig, load_matching, train
+
+    cells = make_checkpoint(tmp_path / "cells.pt")
+    model = D3LVO(D3LVOConfig.small(height=64, width=224, pose_head="points"))
+    taken = load_matching(model, str(cells))
+    theirs = torch.load(cells, weights_only=False)["model"]
+    key = "encoder.rgb.0.0.0.weight"
+    assert taken > 0 and torch.equal(model.state_dict()[key], theirs[key])
+    from models.checkpoint import save_checkpoint
+
+    cfg = D3LVOConfig.small(height=64, width=224, pose_head="points")
+    other = tmp_path / "other.pt"  # a valid checkpoint file whose weights belong to something else
+    save_checkpoint(other, torch.nn.Linear(3, 2), cfg, step=1)
+    tc = TrainConfig(data=[str(small_synth)], out=str(tmp_path / "x.pt"), steps=1, init=str(other))
+    with pytest.raises(D3LVOInputError, match="none of its weights fits"):
+        train(cfg, tc)
