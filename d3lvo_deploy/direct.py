@@ -169,7 +169,8 @@ class DirectOdometry:
         t0 = time.perf_counter()
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
-        X = textured_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points)
+        X = textured_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
+                            grads=levels[0].stack[..., 1:])
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return _Frame(levels, X)
 

@@ -81,16 +81,15 @@ def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def textured_points(scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray, grey: np.ndarray,
-                    cfg: PointConfig) -> np.ndarray:
+                    cfg: PointConfig, grads: np.ndarray | None = None) -> np.ndarray:
     """(M, 3) camera points, M <= capacity: visible returns where |grad grey| > min_gradient, an
     evenly spaced subset when there are more than `capacity`. Not the strongest gradients: with
     traffic those lie on the vehicles' edges, and the static scene would lose its points
-    (docs/evaluation.md)."""
+    (docs/evaluation.md). `grads`: (H, W, 2) `gradients(grey)` where the caller has them already."""
     X = visible_points(scan, T_cam_velo, K, grey.shape, cfg)
     if not len(X):
         return X
-    gx, gy = gradients(grey)
-    g = bilinear(np.dstack([gx, gy]), project(X, K)[0])
+    g = bilinear(np.dstack(gradients(grey)) if grads is None else grads, project(X, K)[0])
     mag = np.hypot(g[:, 0], g[:, 1])
     keep = mag > cfg.min_gradient
     X = X[keep]
