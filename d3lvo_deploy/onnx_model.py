@@ -70,17 +70,18 @@ class StageModel:
         sc = sc.resolved()
         self.backend = sc.backend
         self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
+        # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
+        self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
         for name, st in self.manifest["stages"].items():
             path = self.dir / st["file"]
-            sess = open_session(path, single_threaded(sc) if _point_solver(st) else sc, name, st)
+            solo = name == "flowpose" and self.point_solver
+            sess = open_session(path, single_threaded(sc) if solo else sc, name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
         self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
         self.geometric = "init_pose" in self.input_names("flowpose")
-        # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
-        self.point_solver = "points1" in self.input_names("flowpose")
 
     @staticmethod
     def _check_io(path: Path, sess, st: dict) -> None:

@@ -124,9 +124,10 @@ class D3LVO(nn.Module):
                 poses.append(pose)
                 confs.append(conf)
         out: dict = {"flows": flows}
-        if self.point_pose is not None:
+        if self.gn_pose is not None or self.point_pose is not None:  # the solvers' camera and start
             K = nominal_intrinsics(self.cfg, b, ref.dtype).to(ref.device) if K is None else K
             init = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(b, 4, 4) if init is None else init
+        if self.point_pose is not None:
             f = self._finest
             res = self.point_pose(hidden, flow, feats1[f], feats2[f], depths1[f], depths2[f], K, init, solver)
             out.update({"confidence": res["confidence"], "moving_logits": res["moving_logits"]})
@@ -148,8 +149,6 @@ class D3LVO(nn.Module):
             levels = torch.stack(poses, 1)  # (B, L, 7)
             weights = torch.softmax(torch.cat(confs, 1), dim=1)  # (B, L)
         else:
-            K = nominal_intrinsics(self.cfg, b, ref.dtype).to(ref.device) if K is None else K
-            init = torch.eye(4, dtype=ref.dtype, device=ref.device).expand(b, 4, 4) if init is None else init
             points = lidar1 if self.cfg.gn_lidar else depths1
             if points is None:
                 raise ValueError("this model's solver back-projects the LiDAR returns: pass lidar1=lidar_levels(...)")

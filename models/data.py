@@ -12,6 +12,7 @@ depth input, so that completion is supervised where it has to guess rather than 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,6 +81,10 @@ class FrameLoader:
         self.pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
         self.view: View = self.pre.view
         self.K = self.pre.K
+        # a synthetic drive rendered without traffic has no motion_2/: nothing in it moves
+        meta = seq.root / "synth.json"
+        self.static_synthetic = meta.is_file() and not json.loads(meta.read_text()).get("traffic", 0)
+        self.points = point_config(cfg.to_dict())
 
     def rgb(self, i: int) -> np.ndarray:
         img = self.seq.image(i)
@@ -123,19 +128,10 @@ class FrameLoader:
             return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
         return self.view.apply_depth((m > 0).astype(np.float32))
 
-    @property
-    def static_synthetic(self) -> bool:
-        meta = self.seq.root / "synth.json"
-        if not meta.is_file():
-            return False
-        import json
-
-        return not json.loads(meta.read_text()).get("traffic", 0)
-
     def solver_frame(self, i: int) -> SolverFrame:
         """Frame i as the point solver reads it (camera resolution, textured LiDAR points)."""
         return SolverFrame.of(self.seq.image(i), self.seq.scan(i), self.seq.calib.T_cam2_velo, self.seq.calib.K2,
-                              point_config(self.cfg.to_dict()))
+                              self.points)
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
