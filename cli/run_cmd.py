@@ -1,4 +1,5 @@
-"""`d3lvo run`: the ONNX pipeline over a KITTI-format sequence, poses written as they come."""
+"""`d3lvo run`: the ONNX pipeline over a recording in any input format, poses written as they come,
+and a results folder that holds everything about the run."""
 
 from __future__ import annotations
 
@@ -34,14 +35,41 @@ def latency_table(stats: dict) -> Table:
     return t
 
 
+# the options a results folder's config.toml records and `--config` reads back: what decides the
+# poses (where they are written, resume and pictures do not)
+RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "gt", "onnx", "method",
+            "start", "end", "provider", "threads", "backend", "ov_precision", "optimization", "realtime", "viz_every")
+
+
 @friendly_errors
 def run_command(
-    seq_dir: Path | None = typer.Option(None, "--seq-dir", help="KITTI odometry sequence folder."),
+    ctx: typer.Context,
+    path: Path | None = typer.Argument(None, help="The recording: a KITTI odometry sequence or raw drive, a ROS 1 "
+                                       "/ ROS 2 bag (.bag, .mcap, .db3 or its folder), or a folder of images/ and "
+                                       "scans/ (.pcd .ply .bin .npy) with calib.txt.", show_default=False),
+    fmt: str = typer.Option("auto", "--format", help="Input format: auto (guessed from PATH) | kitti | kitti-raw | "
+                            "rosbag | folder."),
+    seq_dir: Path | None = typer.Option(None, "--seq-dir", help="Same as PATH (a KITTI odometry sequence folder)."),
     kitti_root: Path | None = typer.Option(None, "--kitti-root", help="KITTI odometry root (sequences/, poses/)."),
     sequence: str | None = typer.Option(None, "--sequence", help="Sequence id under --kitti-root, e.g. 09."),
-    out_path: Path | None = typer.Option(None, "--out", help="Trajectory file to write (cam0 poses, first = identity)."),
+    calib: Path | None = typer.Option(None, "--calib", help="Bags and folders: calibration file, K + T_cam_lidar "
+                                      "(or KITTI's P2 + Tr); for a bag it replaces CameraInfo and /tf_static."),
+    image_topic: str | None = typer.Option(None, "--image-topic", help="Bags: the Image/CompressedImage topic "
+                                           "(needed when there are several)."),
+    cloud_topic: str | None = typer.Option(None, "--cloud-topic", help="Bags: the PointCloud2 topic."),
+    info_topic: str | None = typer.Option(None, "--info-topic", help="Bags: the CameraInfo topic (default: the "
+                                          "one beside the image topic)."),
+    max_dt: float = typer.Option(0.05, "--max-dt", help="Bags: an image and a scan further apart in time (s) are "
+                                 "not paired."),
+    out_dir: Path | None = typer.Option(None, "--out-dir", help="Results folder (default: results/<name>_<time>, "
+                                        "with results/latest pointing at it); with --sequences, the folder for "
+                                        "NN.txt trajectories."),
+    out_path: Path | None = typer.Option(None, "--out", help="Write only this trajectory file instead of a results "
+                                         "folder."),
+    pose_fmt: str = typer.Option("kitti", "--pose-format", help="With --out: kitti | tum."),
+    config: Path | None = typer.Option(None, "--config", help="Repeat a run: the config.toml of its results folder "
+                                       "(options given on the command line take precedence)."),
     sequences: str | None = typer.Option(None, "--sequences", help="Many sequences under --kitti-root: 00-10 or 00,05."),
-    out_dir: Path | None = typer.Option(None, "--out-dir", help="With --sequences: folder for NN.txt trajectories."),
     engine: str = typer.Option("local", "--engine", help="With --sequences: sequential | local (processes) | ray."),
     workers: int = typer.Option(2, "--workers", help="With --sequences: parallel workers."),
     address: str | None = typer.Option(None, "--address", help="With --engine ray: cluster address (default: local)."),
@@ -49,34 +77,98 @@ def run_command(
     overlap: int = typer.Option(2, "--overlap", help="With --sequences: frames shared by consecutive chunks (the "
                                 "stitch anchors at the last one, so each chunk's cold-started first pair is dropped)."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
-    fmt: str = typer.Option("kitti", "--format", help="kitti | tum."),
     start: int = typer.Option(0, "--start", help="First frame."),
     end: int | None = typer.Option(None, "--end", help="One past the last frame."),
-    resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run from its last written pose."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an --out file that already holds poses."),
+    resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run (name its --out-dir or --out)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace poses an earlier run left in the output."),
     viz: Path | None = typer.Option(None, "--viz", help="Folder for pictures of what the network sees (image, LiDAR "
-                                    "and completed depth, flow, pose confidence), one PNG per --viz-every frames."),
+                                    "and completed depth, flow, pose confidence), one PNG per --viz-every frames; "
+                                    "a relative path lies inside the results folder."),
     viz_every: int = typer.Option(10, "--viz-every", help="With --viz or --rerun: pictures of every N-th frame."),
     rerun: Path | None = typer.Option(None, "--rerun", help="Write a Rerun recording (FILE.rrd: trajectory, LiDAR "
-                                      "points, camera images and network outputs) for the Rerun viewer (the \\[rerun] extra)."),
-    gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the sequence)."),
-    plot: Path | None = typer.Option(None, "--plot", help="Write a trajectory PNG (needs ground truth or not)."),
+                                      "points, camera images and network outputs) for the Rerun viewer (the "
+                                      "\\[rerun] extra); a relative path lies inside the results folder."),
+    gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the "
+                                   "sequence, or a KITTI raw drive's OXTS)."),
+    plot: Path | None = typer.Option(None, "--plot", help="With --out: write a trajectory PNG (a results folder "
+                                     "gets trajectory.png when matplotlib is installed)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
     threads: int = typer.Option(0, "--threads", help="Inference threads (0: all cores)."),
     backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the \\[openvino] extra) | auto "
                                 "(openvino where installed, else onnxruntime; `d3lvo bench` times both)."),
     ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 uses "
-                                     "the CPU's AVX512_BF16/AMX paths; see the README's precision table)."),
+                                     "the CPU's AVX512_BF16/AMX paths; see docs/performance.md)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
-    realtime: bool = typer.Option(False, "--realtime", help="Pace frames by times.txt, like a live 10 Hz sensor."),
+    realtime: bool = typer.Option(False, "--realtime", help="Pace frames by their timestamps, like a live sensor."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),
 ) -> None:
-    """Estimate the trajectory of a sequence with the ONNX stages (no torch needed)."""
+    """Estimate the trajectory of a recording with the ONNX stages (no torch needed).
+
+    Example: d3lvo run drive.mcap   (results in results/drive_<time>/, results/latest points there)
+    """
+    opts = {k: v for k, v in locals().items() if k != "ctx"}
+    if config is not None:
+        opts = _apply_config(ctx, opts, config)
+    _run(**opts)
+
+
+def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
+    """The config's [run] values for every option not given on the command line."""
+    from d3lvo_deploy.results import read_config
+
+    table = read_config(config)
+    _check_model(config, table, opts)
+    unknown = sorted(set(table) - set(RUN_KEYS))
+    if unknown:
+        raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
+    for k, v in table.items():
+        # by name: typer may bring its own copy of click's ParameterSource
+        if getattr(ctx.get_parameter_source(k), "name", "DEFAULT") in ("DEFAULT", "DEFAULT_MAP"):
+            opts[k] = Path(v) if k in ("path", "calib", "gt", "onnx") else v
+    return opts
+
+
+def _check_model(config: Path, run: dict, opts: dict) -> None:
+    """A repeat on another model gives other poses: say so (the run itself goes ahead)."""
+    import tomllib
+
+    from d3lvo_deploy.manifest import sha256_file
+    from d3lvo_deploy.results import CONFIG
+
+    path = config / CONFIG if config.is_dir() else config
+    recorded = tomllib.loads(path.read_text()).get("model", {}).get("manifest_sha256")
+    onnx = opts["onnx"] if "onnx" not in run else Path(run["onnx"])
+    manifest = resolve_model_dir(onnx) / "manifest.json"
+    if recorded and manifest.is_file() and sha256_file(manifest) != recorded:
+        console.print(f"[yellow]warning[/] {manifest} differs from the model {path} recorded "
+                      f"(sha256 {recorded[:12]}...): the poses will differ", highlight=False)
+
+
+def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic, max_dt):
+    from d3lvo_deploy.datasets import BagOptions, open_sequence
+    from d3lvo_deploy.sequence import KittiSequence
+
+    given = [x for x in (path, seq_dir, kitti_root) if x is not None]
+    if len(given) != 1:
+        raise D3LVOInputError(None, "name one recording: PATH (or --seq-dir DIR, or --kitti-root R --sequence NN)")
+    if kitti_root is not None:
+        if sequence is None:
+            raise D3LVOInputError(kitti_root, "--kitti-root needs --sequence (e.g. 09)")
+        seq = KittiSequence.from_kitti_root(kitti_root, sequence)
+        return KittiSequence.open(seq.root, gt=gt) if gt is not None else seq
+    bag = BagOptions(image_topic=image_topic, cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt)
+    return open_sequence(path if path is not None else seq_dir, fmt, gt=gt, calib=calib, bag=bag)
+
+
+def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
+         out_path, pose_fmt, config, sequences, engine, workers, address, chunk, overlap, onnx, start, end, resume,
+         overwrite, viz, viz_every, rerun, gt, plot, provider, threads, backend, ov_precision, optimization, realtime,
+         method) -> None:
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
-    from d3lvo_deploy.sequence import KittiSequence
+    from d3lvo_deploy.results import ResultsFolder, default_folder
 
     if method not in ("d3lvo", "direct"):
         raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
@@ -88,18 +180,18 @@ def run_command(
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")
         return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap, backend)
+    if resume and out_path is None and out_dir is None:
+        raise D3LVOInputError(None, "--resume continues a results folder: name it with --out-dir "
+                                    "(results/latest is the newest)")
+    seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
+                          max_dt)
+    folder = None
     if out_path is None:
-        raise D3LVOInputError(None, "--out FILE is required (or --sequences with --out-dir)")
-    if (seq_dir is None) == (kitti_root is None):
-        raise D3LVOInputError(None, "give either --seq-dir DIR or --kitti-root R --sequence NN")
-    if kitti_root is not None:
-        if sequence is None:
-            raise D3LVOInputError(kitti_root, "--kitti-root needs --sequence (e.g. 09)")
-        seq = KittiSequence.from_kitti_root(kitti_root, sequence)
-    else:
-        seq = KittiSequence.open(seq_dir, gt=gt)
-    if gt is not None and kitti_root is not None:
-        seq = KittiSequence.open(seq.root, gt=gt)
+        fresh = out_dir is None
+        folder = ResultsFolder(out_dir if out_dir is not None else default_folder(Path("results"), _name(seq)))
+        out_path, pose_fmt = folder.poses, "kitti"
+        viz = None if viz is None else (viz if viz.is_absolute() else folder.path / viz)
+        rerun = None if rerun is None else (rerun if rerun.is_absolute() else folder.path / rerun)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision)
     sc.check()
@@ -110,16 +202,16 @@ def run_command(
 
         # the classical mode of the model the run would use (the bundled one by default): its
         # point selection and solver settings, with no learned confidence
-        config = load_manifest(resolve_model_dir(onnx))["model_config"]
-        odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(config)), None
+        model_config = load_manifest(resolve_model_dir(onnx))["model_config"]
+        odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(model_config)), None
     else:
         model_dir = resolve_model_dir(onnx)
     if viz is not None and (method != "d3lvo" or viz_every < 1):
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
     if rerun is not None and viz_every < 1:
         raise D3LVOInputError(rerun, "--viz-every must be at least 1")
-    rc = RunConfig(out=out_path, fmt=fmt, start=start, end=end, resume=resume, overwrite=overwrite, realtime=realtime,
-                   viz_dir=viz, viz_every=viz_every, rerun_path=rerun)
+    rc = RunConfig(out=out_path, fmt=pose_fmt, start=start, end=end, resume=resume, overwrite=overwrite,
+                   realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # every argument, the output file and the model are checked before the progress bar
@@ -127,13 +219,28 @@ def run_command(
             plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
     _print_warnings(caught)
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
+    engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"
+    if folder is not None:
+        record = dict(path=seq.root.resolve(), fmt=_format_of(seq), calib=calib, image_topic=image_topic,
+                      cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=gt, onnx=onnx, method=method,
+                      start=start, end=end, provider=provider, threads=threads,
+                      backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
+                      optimization=optimization, realtime=realtime, viz_every=viz_every)
+        _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
+                      seq)
+        if fresh:
+            from d3lvo_deploy.results import link_latest
+
+            link_latest(folder.path)
     if plan.finished:
         console.print(f"{out_path} already holds all {plan.n} poses of frames {plan.rc.start}..{plan.rc.end - 1}: "
                       "nothing to run (--overwrite starts over)", highlight=False)
-        _score(seq, out_path, plan.rc.fmt, start, end, plot, label)
+        _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, None)
         return
     if method == "d3lvo":
-        console.print(f"model {model_dir} on {plan.odo.model.backend}", highlight=False)
+        console.print(f"model {model_dir} on {engine_name}", highlight=False)
+    console.print(f"{_format_of(seq)} recording {seq.root}: {len(seq)} frames; "
+                  f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:
         console.print(f"resuming after {len(plan.done)} poses already in {out_path}", highlight=False)
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
@@ -147,13 +254,94 @@ def run_command(
             summary = execute_run(plan, progress=tick)
         except KeyboardInterrupt:
             bar.stop()
+            again = f"--out-dir {folder.path}" if folder is not None else ""
             console.print(f"[yellow]interrupted[/]: the poses so far are in {out_path}; the same command with "
-                          "--resume continues from there", highlight=False)
+                          f"--resume {again} continues from there", highlight=False)
             raise typer.Exit(130) from None
     _print_warnings(caught)
     out.print(latency_table(summary.stats()))
-    out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, cam0, first pose identity)", highlight=False)
-    _score(seq, out_path, plan.rc.fmt, start, end, plot, label)
+    out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, {seq.frame_label}, first pose identity)",
+              highlight=False)
+    _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, summary)
+
+
+def _name(seq) -> str:
+    root = seq.root
+    name = root.stem if root.is_file() else root.name
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
+
+
+def _format_of(seq) -> str:
+    from d3lvo_deploy.datasets import BagSequence, FolderSequence, KittiRawSequence
+
+    return {BagSequence: "rosbag", FolderSequence: "folder", KittiRawSequence: "kitti-raw"}.get(type(seq), "kitti")
+
+
+def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq) -> None:
+    import platform
+
+    from d3lvo_deploy import __version__
+    from d3lvo_deploy.cpu import cpu_info
+    from d3lvo_deploy.manifest import sha256_file
+    from d3lvo_deploy.results import CONFIG, to_toml
+
+    folder.create()
+    cpu = cpu_info()
+    tables = {
+        "run": {k: (str(v) if isinstance(v, Path) else v) for k, v in record.items()},
+        "model": {"dir": str(model_dir.resolve()), "manifest_sha256": sha256_file(model_dir / "manifest.json")},
+        "machine": {"engine": engine_name, "engine_version": _engine_version(engine_name), "cpu": cpu.line(),
+                    "python": platform.python_version(), "d3lvo_deploy": __version__},
+        "recording": {"frames": len(seq), "pose_frame": seq.frame_label},
+    }
+    folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
+                      + to_toml(tables))
+
+
+def _engine_version(engine_name: str) -> str:
+    if engine_name == "openvino":
+        import openvino
+
+        return openvino.__version__
+    if engine_name == "onnxruntime":
+        import onnxruntime
+
+        return onnxruntime.__version__
+    import numpy
+
+    return "numpy " + numpy.__version__
+
+
+def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None, label: str,
+            summary) -> None:
+    """Score the run where there is ground truth; in a results folder, also the TUM copy, the
+    metrics, the latency and the plot; then say what was written where."""
+    from d3lvo_deploy.results import LATENCY, METRICS, PLOT, latency_report
+
+    written = [out_path]
+    if folder is not None:
+        written.append(folder.write_tum(seq.times, start))
+        if summary is not None:
+            written.append(folder.write_json(LATENCY, latency_report(summary.stats(), summary.latencies_ms)))
+        if plot is None:
+            from d3lvo_deploy.extras import installed
+
+            plot = folder.path / PLOT if installed("matplotlib") else None
+    res = _score(seq, out_path, fmt, start, end, plot, label)
+    if folder is not None:
+        if res is not None:
+            written.append(folder.write_json(METRICS, res.to_dict()))
+        written.append(folder.path / "config.toml")
+        if plot is not None:
+            written.append(plot)
+        console.print(f"results in {folder.path}: " + ", ".join(p.name for p in written if p.exists())
+                      + _asked(folder), highlight=False)
+
+
+def _asked(folder) -> str:
+    extra = [p.name + ("/" if p.is_dir() else "") for p in sorted(folder.path.iterdir())
+             if p.is_dir() or p.suffix == ".rrd"]
+    return (", " + ", ".join(extra)) if extra else ""
 
 
 def _print_warnings(caught) -> None:
@@ -206,7 +394,7 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
         out.print(report_table(evaluate_files(pairs)))
 
 
-def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None, label: str) -> None:
+def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None, label: str):
     from d3lvo_deploy.evaluation import EvalReport, evaluate
     from d3lvo_deploy.geometry import relative
     from d3lvo_deploy.plot import plot_trajectories
@@ -221,7 +409,7 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
         if plot is not None:
             plot_trajectories(plot, {"estimate": est.poses}, title=f"{seq.root.name} (no ground truth)")
             console.print(f"plot written to {plot}", highlight=False)
-        return
+        return None
     stop = len(seq) if end is None else end
     g = gt.poses[start:stop]
     res = evaluate(Trajectory.from_poses(relative(g[0], g)), Trajectory.from_poses(est.poses), name=seq.root.name)
@@ -232,3 +420,4 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
         plot_trajectories(plot, {"GT": res.gt_poses, label: res.est_poses},
                           title=f"{seq.root.name}: ATE {res.ate:.2f} m")
         console.print(f"plot written to {plot}", highlight=False)
+    return res

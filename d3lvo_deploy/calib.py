@@ -64,7 +64,8 @@ def _as_4x4(path: Path, key: str, vals: list[float]) -> np.ndarray:
 
 
 def parse_calib(path: str | Path) -> Calib:
-    """Read odometry (`P0..P3`, `Tr`) or object-benchmark (`R0_rect`, `Tr_velo_to_cam`) calib files."""
+    """Read odometry (`P0..P3`, `Tr`) or object-benchmark (`R0_rect`, `Tr_velo_to_cam`) calib files,
+    or a plain camera's: `K` (9 numbers) and `T_cam_lidar` (12 or 16), poses then in that camera."""
     path = Path(path)
     if not path.is_file():
         raise D3LVOInputError(path, "calibration file not found")
@@ -80,20 +81,22 @@ def parse_calib(path: str | Path) -> Calib:
         except ValueError:
             raise D3LVOInputError(path, f"line {lineno} ({key.strip()}) is not numeric") from None
 
+    if "P2" not in entries and len(entries.get("K", [])) == 9:
+        entries["P2"] = list(np.hstack([np.asarray(entries["K"]).reshape(3, 3), np.zeros((3, 1))]).reshape(-1))
     if "P2" not in entries:
-        raise D3LVOInputError(path, "no P2 (image_2 projection) entry")
+        raise D3LVOInputError(path, "no P2 (image_2 projection) or K (camera matrix) entry")
     if len(entries["P2"]) != 12:
         raise D3LVOInputError(path, f"P2 has {len(entries['P2'])} numbers, expected 12")
     P2 = np.asarray(entries["P2"]).reshape(3, 4)
     if abs(np.linalg.det(P2[:, :3])) < 1e-9:
         raise D3LVOInputError(path, "P2's left 3x3 block is singular")
 
-    tr_key = next((k for k in ("Tr", "Tr_velo_to_cam", "Tr_velo_cam") if k in entries), None)
+    tr_key = next((k for k in ("Tr", "Tr_velo_to_cam", "Tr_velo_cam", "T_cam_lidar") if k in entries), None)
     if tr_key is None:
-        raise D3LVOInputError(path, "no LiDAR extrinsic (Tr, Tr_velo_to_cam or Tr_velo_cam)")
+        raise D3LVOInputError(path, "no LiDAR extrinsic (Tr, Tr_velo_to_cam, Tr_velo_cam or T_cam_lidar)")
     Tr = _as_4x4(path, tr_key, entries[tr_key])
     rect_key = next((k for k in ("R0_rect", "R_rect", "R0") if k in entries), None)
-    if rect_key is not None and tr_key != "Tr":
+    if rect_key is not None and tr_key not in ("Tr", "T_cam_lidar"):
         R0 = np.asarray(entries[rect_key])
         if R0.size != 9:
             raise D3LVOInputError(path, f"{rect_key} has {R0.size} numbers, expected 9")

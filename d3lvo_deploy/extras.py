@@ -2,7 +2,8 @@
 
 A vehicle installs `d3lvo-deploy` alone (numpy, onnxruntime, opencv, typer, rich): `run`, `eval`
 and the `Odometry` API. Training, export and parity need `[train]` (torch, onnx), the synthetic
-world `[synth]` (embreex), plots `[plot]` (matplotlib), the Ray engine `[ray]`.
+world `[synth]` (embreex), plots `[plot]` (matplotlib), the Ray engine `[ray]`, ROS bags and
+PCD/PLY scans `[sensors]` (rosbags, pypcd4, plyfile).
 """
 
 from __future__ import annotations
@@ -12,7 +13,16 @@ import importlib
 from .errors import D3LVOInputError
 
 EXTRAS = {"torch": "train", "onnx": "train", "embreex": "synth", "matplotlib": "plot", "ray": "ray",
-          "openvino": "openvino", "rerun": "rerun"}
+          "openvino": "openvino", "rerun": "rerun", "rosbags": "sensors", "rosbags.image": "sensors",
+          "pypcd4": "sensors", "plyfile": "sensors"}
+
+
+def installed(module: str) -> bool:
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        return False
+    return True
 
 
 def require(*modules: str, what: str) -> None:

@@ -1,4 +1,4 @@
-"""Run odometry over a KITTI-format sequence and write the trajectory as it goes.
+"""Run odometry over a recording (any input format) and write the trajectory as it goes.
 
 Each pose line is appended and flushed as soon as it is computed, so an interrupted run keeps
 its finished frames; `resume=True` re-reads them, re-encodes the last written frame and carries
@@ -20,7 +20,7 @@ from .errors import D3LVOInputError
 from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .poses import format_kitti_line, format_tum_line, read_poses
-from .sequence import KittiSequence
+from .datasets import Recording
 from .viz import network_view
 
 
@@ -96,7 +96,7 @@ def _write_viz(path: Path, view: dict) -> None:
 @dataclass
 class RunPlan:
     """A checked run: arguments valid, model loaded, poses already written read back."""
-    seq: KittiSequence
+    seq: Recording
     rc: RunConfig
     odo: object
     out: Path
@@ -108,7 +108,7 @@ class RunPlan:
         return len(self.done) == self.n
 
 
-def prepare_run(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
+def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
                 model: StageModel | None = None, odometry=None) -> RunPlan:
     """Every check that can fail before the first frame (range, format, output file, model), so
     a bad argument is one error before any work or progress bar."""
@@ -117,7 +117,7 @@ def prepare_run(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig,
         raise D3LVOInputError(seq.root, f"frame range {rc.start}..{end} is outside 0..{len(seq)}")
     fmt = rc.fmt.lower()
     if fmt not in ("kitti", "tum"):
-        raise D3LVOInputError(None, f"--format must be kitti or tum, not {rc.fmt!r}")
+        raise D3LVOInputError(None, f"--pose-format must be kitti or tum, not {rc.fmt!r}")
     rc = replace(rc, fmt=fmt, end=end)
     if rc.rerun_path is not None:
         from .extras import require
@@ -142,7 +142,7 @@ def prepare_run(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig,
     return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done)
 
 
-def run_sequence(seq: KittiSequence, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
+def run_sequence(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
                  progress: Callable[[int, int, float], None] | None = None, model: StageModel | None = None,
                  odometry=None) -> RunSummary:
     """Estimate poses for frames [start, end) and write them to rc.out; returns timings.

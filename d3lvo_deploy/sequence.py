@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import ClassVar
 from pathlib import Path
 
 import cv2
@@ -54,6 +55,7 @@ class GreyscaleWarning(UserWarning):
 
 @dataclass
 class KittiSequence:
+    frame_label: ClassVar[str] = "cam0 (rectified left grey camera, KITTI's convention)"
     root: Path
     calib: Calib
     frame_names: list[str]

@@ -252,7 +252,8 @@ def test_run_checks_arguments_before_any_work(small_model, small_synth, tmp_path
     ck, onnx_dir = small_model
     p = str(tmp_path / "p.txt")
     cases = [(["--out", str(tmp_path)], "is a folder"),
-             (["--out", p, "--format", "xyz"], "--format must be kitti or tum"),
+             (["--out", p, "--pose-format", "xyz"], "--pose-format must be kitti or tum"),
+             (["--out", p, "--format", "xyz"], "--format must be auto or one of"),
              (["--out", p, "--onnx", str(ck)], "d3lvo export --ckpt"),
              (["--out", p, "--onnx", str(onnx_dir / "encoder.onnx")], "one ONNX file"),
              (["--out", p, "--backend", "tvm"], "--backend must be one of")]
@@ -267,7 +268,7 @@ def test_run_checks_arguments_before_any_work(small_model, small_synth, tmp_path
 def test_format_is_case_insensitive_and_a_finished_file_says_so(small_model, small_synth, tmp_path):
     _, onnx_dir = small_model
     args = ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "p.tum"),
-            "--format", "TUM"]
+            "--pose-format", "TUM"]
     assert runner.invoke(app, args).exit_code == 0
     assert len(read_poses(tmp_path / "p.tum", fmt="tum")) == len(KittiSequence.open(small_synth))
     saved = (tmp_path / "p.tum").read_text()

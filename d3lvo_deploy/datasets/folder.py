@@ -1,0 +1,151 @@
+"""A plain folder: one subfolder of images, one of LiDAR scans (.pcd, .ply, .bin or .npy) with
+the same file names, and a calibration file; optional times.txt and poses.txt.
+
+Readers are the formats' own libraries (pypcd4 for PCD, plyfile for PLY, the `[sensors]`
+extra), not hand-written parsers: PCD alone has ASCII, binary and LZF-compressed bodies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..calib import parse_calib
+from ..errors import D3LVOInputError
+from ..poses import read_poses
+from ..sequence import _check_contiguous, _read_times, read_image, read_scan
+from .base import SensorSequence, as_scan
+
+IMAGE_DIRS = ("image_2", "images", "image", "camera", "rgb", "img")
+SCAN_DIRS = ("velodyne", "scans", "lidar", "points", "pointclouds", "pcd", "clouds")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+SCAN_EXTS = (".pcd", ".ply", ".bin", ".npy")
+CALIB_NAMES = ("calib.txt", "calib.yaml", "calibration.txt")
+INTENSITY_NAMES = ("intensity", "reflectance", "i", "remission")
+
+
+def read_pcd(path: Path) -> np.ndarray:
+    from ..extras import require
+
+    require("pypcd4", what=f"reading {path.name}")
+    from pypcd4 import PointCloud
+
+    try:
+        pc = PointCloud.from_path(path)
+    except Exception as e:  # noqa: BLE001 - the library's own error types vary by body kind
+        raise D3LVOInputError(path, f"cannot be read as a PCD file ({type(e).__name__}: {e})") from None
+    fields = list(pc.fields)
+    if not {"x", "y", "z"} <= set(fields):
+        raise D3LVOInputError(path, f"PCD fields {fields} lack x, y, z")
+    inten = next((f for f in INTENSITY_NAMES if f in fields), None)
+    arr = pc.numpy(("x", "y", "z") + ((inten,) if inten else ()))
+    return as_scan(path, arr[:, :3], arr[:, 3] if inten else None)
+
+
+def read_ply(path: Path) -> np.ndarray:
+    from ..extras import require
+
+    require("plyfile", what=f"reading {path.name}")
+    from plyfile import PlyData
+
+    try:
+        vertex = PlyData.read(str(path))["vertex"]
+    except Exception as e:  # noqa: BLE001
+        raise D3LVOInputError(path, f"cannot be read as a PLY file with a 'vertex' element ({e})") from None
+    names = vertex.data.dtype.names
+    if not {"x", "y", "z"} <= set(names):
+        raise D3LVOInputError(path, f"PLY vertex properties {list(names)} lack x, y, z")
+    inten = next((f for f in INTENSITY_NAMES if f in names), None)
+    xyz = np.stack([vertex["x"], vertex["y"], vertex["z"]], -1)
+    return as_scan(path, xyz, vertex[inten] if inten else None)
+
+
+def read_npy(path: Path) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise D3LVOInputError(path, f"cannot be read as a .npy array ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] not in (3, 4):
+        raise D3LVOInputError(path, f"array of shape {arr.shape}; a scan is (N,3) x,y,z or (N,4) x,y,z,intensity")
+    return as_scan(path, arr[:, :3], arr[:, 3] if arr.shape[1] == 4 else None)
+
+
+READERS = {".pcd": read_pcd, ".ply": read_ply, ".bin": read_scan, ".npy": read_npy}
+
+
+def read_any_scan(path: str | Path) -> np.ndarray:
+    """(N,4) float32 from any of the scan formats, chosen by extension."""
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, "LiDAR scan not found")
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        raise D3LVOInputError(path, f"unknown scan format; D3LVO reads {', '.join(SCAN_EXTS)}")
+    return reader(path)
+
+
+def _pick(root: Path, names: tuple[str, ...], exts: tuple[str, ...]) -> tuple[Path, list[Path]] | None:
+    for n in names:
+        d = root / n
+        if d.is_dir():
+            files = sorted(p for p in d.iterdir() if p.suffix.lower() in exts)
+            if files:
+                return d, files
+    return None
+
+
+def is_folder(path: Path) -> bool:
+    return path.is_dir() and _pick(path, IMAGE_DIRS, IMAGE_EXTS) is not None \
+        and _pick(path, SCAN_DIRS, SCAN_EXTS) is not None
+
+
+@dataclass
+class FolderSequence(SensorSequence):
+    image_files: list[Path] | None = None
+    scan_files: list[Path] | None = None
+
+    @classmethod
+    def open(cls, root: str | Path, calib: str | Path | None = None, gt: str | Path | None = None) -> "FolderSequence":
+        root = Path(root)
+        if not root.is_dir():
+            raise D3LVOInputError(root, "folder not found")
+        images = _pick(root, IMAGE_DIRS, IMAGE_EXTS)
+        scans = _pick(root, SCAN_DIRS, SCAN_EXTS)
+        if images is None:
+            raise D3LVOInputError(root, f"no image folder ({', '.join(IMAGE_DIRS)}) with {'/'.join(IMAGE_EXTS)} files")
+        if scans is None:
+            raise D3LVOInputError(root, f"no scan folder ({', '.join(SCAN_DIRS)}) with {'/'.join(SCAN_EXTS)} files")
+        (img_dir, img_files), (scan_dir, scan_files) = images, scans
+        kinds = {p.suffix.lower() for p in scan_files}
+        if len(kinds) > 1:
+            raise D3LVOInputError(scan_dir, f"holds scans of several formats {sorted(kinds)}; keep one")
+        by_stem = {p.stem: p for p in scan_files}
+        names = [p.stem for p in img_files]
+        missing = [n for n in names if n not in by_stem]
+        if missing or len(scan_files) != len(img_files):
+            extra = sorted(set(by_stem) - set(names))[:3]
+            raise D3LVOInputError(root, f"{len(img_files)} images in {img_dir.name}/ but {len(scan_files)} scans in "
+                                        f"{scan_dir.name}/; images without a scan: {missing[:3]}, scans without an "
+                                        f"image: {extra}")
+        _check_contiguous(root, names)
+        if calib is None:
+            calib = next((root / n for n in CALIB_NAMES if (root / n).is_file()), root / "calib.txt")
+        cal = parse_calib(calib)
+        times = _read_times(root / "times.txt", len(names))
+        gt_path = Path(gt) if gt is not None else (root / "poses.txt" if (root / "poses.txt").is_file() else None)
+        truth = None
+        if gt_path is not None:
+            truth = read_poses(gt_path)
+            if len(truth) != len(names):
+                raise D3LVOInputError(gt_path, f"{len(truth)} poses for a sequence of {len(names)} frames")
+        label = "cam0 (the frame of the calibration's P2 and Tr)"
+        return cls(root=root, calib=cal, frame_names=names, times=times, frame_label=label, gt=truth, gt_path=gt_path,
+                   image_files=img_files, scan_files=[by_stem[n] for n in names])
+
+    def image(self, i: int) -> np.ndarray:
+        return read_image(self.image_files[i])
+
+    def scan(self, i: int) -> np.ndarray:
+        return read_any_scan(self.scan_files[i])

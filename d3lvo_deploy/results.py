@@ -1,0 +1,143 @@
+"""A run's results folder: everything needed to read, compare and reproduce one run, together.
+
+    results/<name>_<YYYYmmdd-HHMMSS>/   (`latest` beside it points at the newest)
+        poses.txt        KITTI format, one line per frame, written as frames finish
+        poses_tum.txt    the same poses with the frames' times (TUM)
+        config.toml      every option of the run, the model's hash, the engine, the CPU
+        metrics.json     scores against ground truth, when the recording has it
+        latency.json     per-stage mean / p90 / max and every frame's total, in ms
+        trajectory.png   when matplotlib is installed
+    and the --viz folder / --rerun recording when asked for.
+
+`d3lvo run --config results/.../config.toml` reads the [run] table back: the same options,
+hence the same poses.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import D3LVOInputError
+from .poses import read_poses, write_poses
+
+POSES, POSES_TUM, CONFIG, METRICS, LATENCY, PLOT = (
+    "poses.txt", "poses_tum.txt", "config.toml", "metrics.json", "latency.json", "trajectory.png")
+
+
+def default_folder(base: Path, name: str, now: float | None = None) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    folder = base / f"{name}_{stamp}"
+    k = 1
+    while folder.exists():  # two runs within one second
+        k += 1
+        folder = base / f"{name}_{stamp}-{k}"
+    return folder
+
+
+def link_latest(folder: Path) -> None:
+    """`latest` beside the folder, a relative link, replaced atomically."""
+    link = folder.parent / "latest"
+    tmp = folder.parent / f".latest-{os.getpid()}"
+    try:
+        if tmp.is_symlink():
+            tmp.unlink()
+        tmp.symlink_to(folder.name)
+        os.replace(tmp, link)
+    except OSError:  # a file system without links: the folder itself is what matters
+        pass
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v)) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return json.dumps(str(v))  # a JSON string is a valid TOML basic string
+
+
+def to_toml(tables: dict[str, dict]) -> str:
+    """Flat tables of scalars and lists (None left out: TOML has no null)."""
+    lines = []
+    for name, table in tables.items():
+        lines.append(f"[{name}]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in table.items() if v is not None]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def read_config(path: str | Path) -> dict:
+    """The [run] table of a results folder's config.toml (or of a file written by hand)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CONFIG
+    if not path.is_file():
+        raise D3LVOInputError(path, "config file not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+    run = data.get("run")
+    if not isinstance(run, dict):
+        raise D3LVOInputError(path, "has no [run] table (d3lvo run writes one into each results folder)")
+    return run
+
+
+@dataclass
+class ResultsFolder:
+    path: Path
+
+    @property
+    def poses(self) -> Path:
+        return self.path / POSES
+
+    def create(self) -> "ResultsFolder":
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise D3LVOInputError(self.path, f"cannot create the results folder ({e.strerror})") from None
+        return self
+
+    def write_text(self, name: str, text: str) -> Path:
+        p = self.path / name
+        tmp = p.with_name(p.name + ".tmp")
+        tmp.write_text(text)
+        os.replace(tmp, p)
+        return p
+
+    def write_json(self, name: str, data: dict) -> Path:
+        return self.write_text(name, json.dumps(data, indent=2, default=_jsonable) + "\n")
+
+    def write_tum(self, times: np.ndarray, start: int) -> Path:
+        """poses.txt again with each frame's time: TUM, for tools that want stamps (evo, rpg)."""
+        traj = read_poses(self.poses, "kitti")
+        p = self.path / POSES_TUM
+        write_poses(p, traj.poses, "tum", np.asarray(times)[start:start + len(traj)])
+        return p
+
+
+def _jsonable(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, Path):
+        return str(v)
+    raise TypeError(type(v).__name__)
+
+
+def latency_report(stats: dict, latencies: dict[str, list[float]]) -> dict:
+    total = latencies.get("total", [])
+    return {"unit": "ms", "stages": stats, "frames": len(total),
+            "median_total": float(np.median(total)) if total else None, "per_frame_total": total}

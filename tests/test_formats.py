@@ -1,0 +1,250 @@
+"""Input formats: ROS 1 / ROS 2 bags, KITTI raw drives and plain folders give the poses of the
+same frames read from a KITTI odometry folder; bad recordings fail in one line, writing nothing;
+a results folder's config.toml repeats its run exactly.
+
+The recordings are written by the tests themselves (tests/recordings.py) with the formats' own
+writers (rosbags, pypcd4, plyfile), never with the readers under test."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT, shared_path
+from recordings import bag_twin, write_kitti_raw, write_ros1_bag, write_ros2_bag, write_scan_folder
+from typer.testing import CliRunner
+
+from cli.main import app
+from d3lvo_deploy.datasets import guess_format, open_sequence
+from d3lvo_deploy.datasets.kitti_raw import oxts_poses
+from d3lvo_deploy.datasets.rosbag import pair_stamps
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.poses import read_poses
+from d3lvo_deploy.sequence import KittiSequence
+
+pytest.importorskip("rosbags")
+runner = CliRunner()
+TINY = ROOT / "tests" / "data" / "tiny_seq"
+
+
+def run(*args: str) -> str:
+    r = runner.invoke(app, ["run", *args, "--backend", "onnxruntime"])
+    assert r.exit_code == 0, r.output
+    return r.output
+
+
+@pytest.fixture(scope="module")
+def real_runs(tmp_path_factory):
+    """The 20 real frames run from KITTI odometry folders: the reference poses, for the real
+    calibration and for its bag twin (Tr's rotation through a quaternion, as /tf_static holds it)."""
+    seq = KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
+    d = tmp_path_factory.mktemp("real")
+    twin = bag_twin(seq, d / "twin")
+    poses = {}
+    for name, s in (("kitti", seq), ("twin", twin)):
+        run(str(s.root), "--out", str(d / f"{name}.txt"))
+        poses[name] = read_poses(d / f"{name}.txt").poses
+    return seq, poses
+
+
+@pytest.mark.parametrize("kind", ["ros2-mcap", "ros1", "ros2-sqlite3-png", "kitti-raw"])
+def test_recording_formats_give_the_folder_run_poses(real_runs, tmp_path, kind):
+    seq, refs = real_runs
+    ref = refs["kitti" if kind == "kitti-raw" else "twin"]
+    if kind == "ros2-mcap":
+        path = write_ros2_bag(seq, tmp_path / "drive")
+    elif kind == "ros1":
+        path = write_ros1_bag(seq, tmp_path / "drive.bag")
+    elif kind == "ros2-sqlite3-png":
+        path = write_ros2_bag(seq, tmp_path / "drive", storage="sqlite3", compressed=True)
+    else:
+        path = write_kitti_raw(seq, tmp_path / "2011_09_26")
+    assert guess_format(path) == ("kitti-raw" if kind == "kitti-raw" else "rosbag")
+    out = tmp_path / "poses.txt"
+    text = run(str(path), "--out", str(out))
+    poses = read_poses(out).poses
+    assert poses.shape == ref.shape
+    np.testing.assert_allclose(poses, ref, rtol=0, atol=1e-9)
+    assert ("camera frame 'camera'" if kind != "kitti-raw" else "cam0") in text
+
+
+def test_bag_at_an_mcap_file_and_topic_choice(tmp_path):
+    """Two image topics: the error lists both and names the option; the option picks one."""
+    seq = KittiSequence.open(TINY)
+    bag = write_ros2_bag(seq, tmp_path / "two")
+    # a second camera: the same bag's messages under another topic, written again
+    from rosbags.rosbag2 import Reader, Writer
+    from rosbags.rosbag2 import StoragePlugin
+
+    both = tmp_path / "both"
+    with Reader(bag) as r, Writer(both, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {}
+        for c in r.connections:
+            conns[c.topic] = w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest)
+        conns["/left/image_raw"] = w.add_connection("/left/image_raw", "sensor_msgs/msg/Image",
+                                                    msgdef=next(c for c in r.connections if c.topic ==
+                                                                "/camera/image_raw").msgdef.data,
+                                                    rihs01=next(c for c in r.connections if c.topic ==
+                                                                "/camera/image_raw").digest)
+        for c, t, raw in r.messages():
+            w.write(conns[c.topic], t, raw)
+            if c.topic == "/camera/image_raw":
+                w.write(conns["/left/image_raw"], t, raw)
+    mcap = next(both.glob("*.mcap"))
+    with pytest.raises(D3LVOInputError, match="several image topics: .*/camera/image_raw.*/left/image_raw.*"
+                                              "--image-topic"):
+        open_sequence(mcap)
+    s = open_sequence(mcap, bag=__import__("d3lvo_deploy.datasets", fromlist=["BagOptions"]).BagOptions(
+        image_topic="/left/image_raw", info_topic="/camera/camera_info"))
+    assert len(s) == 3 and np.array_equal(s.image(2), seq.image(2)) and np.array_equal(s.scan(1), seq.scan(1))
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("no-cloud", "has no PointCloud2 topic; its topics: /tf_static"),
+    ("no-pairs", "0 of 3 images on /camera/image_raw have a scan on /velodyne_points within 0.05 s (closest: 0.800 s)"),
+    ("no-tf", "no LiDAR-camera extrinsics: the bag has no /tf_static; give them with --calib"),
+    ("no-info", "no CameraInfo topic for /camera/image_raw"),
+])
+def test_bad_bags_fail_in_one_line_and_write_nothing(tmp_path, monkeypatch, kind, words):
+    seq = KittiSequence.open(TINY)
+    kw = {"no-cloud": dict(dropped="cloud"), "no-pairs": dict(stamp_offset=1.0), "no-tf": dict(tf=False),
+          "no-info": dict(info=False)}[kind]
+    bag = write_ros2_bag(seq, tmp_path / "bag", **kw)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    r = runner.invoke(app, ["run", str(bag)])
+    assert r.exit_code == 1, r.output
+    assert words in r.output and str(bag) in r.output, r.output
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert list(work.iterdir()) == []  # no results folder, no poses
+
+
+def test_a_calib_file_stands_in_for_missing_extrinsics(tmp_path):
+    seq = KittiSequence.open(TINY)
+    bag = write_ros2_bag(seq, tmp_path / "bag", tf=False)
+    s = open_sequence(bag, calib=TINY / "calib.txt")
+    assert np.array_equal(s.calib.Tr, seq.calib.Tr) and np.array_equal(s.calib.P2, seq.calib.P2)
+
+
+def test_pairing_by_nearest_stamp_by_hand():
+    images = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
+    clouds = np.array([0.38, 0.02, 0.13, 0.29])  # unsorted; none near 0.2 within 0.05
+    assert pair_stamps(images, clouds, 0.05) == [(0, 1), (1, 2), (3, 3), (4, 0)]
+    assert pair_stamps(images, clouds, 0.011) == [(3, 3)]
+
+
+@pytest.mark.parametrize("ext", [".pcd", ".ply", ".npy"])
+def test_scan_folders_read_the_same_points(tmp_path, ext):
+    seq = KittiSequence.open(TINY)
+    folder = write_scan_folder(seq, tmp_path / "f", ext)
+    assert guess_format(folder) == "folder"
+    s = open_sequence(folder)
+    for i in range(len(seq)):
+        assert np.array_equal(s.scan(i), seq.scan(i))
+        assert np.array_equal(s.image(i), seq.image(i))
+    np.testing.assert_allclose(s.times, seq.times)
+
+
+def test_folder_poses_are_in_the_calibrated_camera(tmp_path):
+    """K + T_cam_lidar of the colour camera: the same motion as the KITTI run, expressed in that
+    camera, i.e. conjugated by cam0 -> cam2, the translation b = K^-1 P2[:, 3] (P2 by hand)."""
+    seq = KittiSequence.open(TINY)
+    folder = write_scan_folder(seq, tmp_path / "f", ".npy")
+    run(str(TINY), "--out", str(tmp_path / "kitti.txt"))
+    text = run(str(folder), "--out", str(tmp_path / "cam.txt"))
+    assert "cam0 (the frame of the calibration's P2 and Tr)" in text
+    P2 = np.array([float(v) for v in (TINY / "calib.txt").read_text().split("P2:")[1].split("\n")[0].split()]).reshape(3, 4)
+    S = np.eye(4)
+    S[:3, 3] = np.linalg.solve(P2[:, :3], P2[:, 3])  # x_cam2 = x_cam0 + b
+    kitti = read_poses(tmp_path / "kitti.txt").poses
+    expected = S @ kitti @ np.linalg.inv(S)
+    np.testing.assert_allclose(read_poses(tmp_path / "cam.txt").poses, expected, atol=2e-5)
+
+
+def test_kitti_raw_oxts_ground_truth_by_hand(tmp_path):
+    """Metres per degree at the equator: 2 pi 6378137 / 360 = 111319.49 m. IMU yawing 90 deg on
+    the spot with the camera 1 m ahead of it (x): the camera swings to (-1, 1, 0)."""
+    deg = 2 * math.pi * 6378137.0 / 360.0
+    rec = np.zeros((3, 30))
+    rec[1, 1] = 1e-5  # lon: east
+    rec[2, 0] = 1e-5  # lat: north
+    T = oxts_poses(rec)
+    np.testing.assert_allclose(T[1, :3, 3], [1e-5 * deg, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(T[2, :3, 3], [0, 1e-5 * deg, 0], atol=1e-6)
+    assert np.allclose(T[:, :3, :3], np.eye(3))
+
+    seq = KittiSequence.open(TINY)
+    drive = write_kitti_raw(seq, tmp_path / "2011_09_26")
+    (drive.parent / "calib_velo_to_cam.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: 0 0 0\n")
+    (drive.parent / "calib_imu_to_velo.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: -1 0 0\n")
+    (drive / "oxts" / "data").mkdir(parents=True)
+    for i, yaw in enumerate([0.0, math.pi / 2, math.pi / 2]):
+        row = np.zeros(30)
+        row[5] = yaw
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(" ".join(map(str, row)))
+    gt = open_sequence(drive).ground_truth.poses
+    np.testing.assert_allclose(gt[1, :3, 3], [-1, 1, 0], atol=1e-9)
+    np.testing.assert_allclose(gt[1, :3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-9)
+
+
+def test_unknown_recording_names_the_formats(tmp_path):
+    (tmp_path / "x").mkdir()
+    r = runner.invoke(app, ["run", str(tmp_path / "x")])
+    assert r.exit_code == 1 and "is none of the formats D3LVO reads" in r.output and "--format" in r.output
+
+
+def test_results_folder_holds_the_run_and_its_config_repeats_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    text = run(str(TINY))
+    first = Path("results/latest").resolve()
+    assert first.parent == (tmp_path / "results").resolve() and first.name.startswith("tiny_seq_")
+    for name in ("poses.txt", "poses_tum.txt", "config.toml", "metrics.json", "latency.json"):
+        assert (first / name).is_file(), (name, text)
+    poses = read_poses(first / "poses.txt").poses
+    tum = read_poses(first / "poses_tum.txt", fmt="tum")
+    np.testing.assert_allclose(tum.poses, poses, atol=1e-9)
+    np.testing.assert_allclose(tum.timestamps, KittiSequence.open(TINY).times)
+    # ATE without alignment, by hand: RMSE of the position differences against poses.txt beside tiny_seq
+    gt = read_poses(TINY / "poses.txt").poses
+    gt = np.linalg.inv(gt[0]) @ gt
+    ate = np.sqrt(np.mean(np.sum((gt[:, :3, 3] - poses[:, :3, 3]) ** 2, 1)))
+    assert json.loads((first / "metrics.json").read_text())["ate"] == pytest.approx(ate, rel=1e-9)
+    lat = json.loads((first / "latency.json").read_text())
+    assert lat["frames"] == 3 and len(lat["per_frame_total"]) == 3
+    cfg = (first / "config.toml").read_text()
+    assert 'backend = "onnxruntime"' in cfg and "manifest_sha256" in cfg and "cpu = " in cfg
+
+    r = runner.invoke(app, ["run", "--config", str(first / "config.toml")])
+    assert r.exit_code == 0, r.output
+    second = Path("results/latest").resolve()
+    assert second != first
+    assert (second / "poses.txt").read_bytes() == (first / "poses.txt").read_bytes()
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[run]\nbackend = 'onnxruntime'\nspeed = 3\n")
+    r = runner.invoke(app, ["run", "--config", str(bad)])
+    assert r.exit_code == 1 and "unknown option 'speed'" in r.output and str(bad) in r.output
+
+
+def test_resume_needs_the_folder_it_continues(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, ["run", str(TINY), "--resume"])
+    assert r.exit_code == 1 and "--resume continues a results folder: name it with --out-dir" in r.output
+    out = tmp_path / "res"
+    run(str(TINY), "--out-dir", str(out), "--end", "2")
+    run(str(TINY), "--out-dir", str(out), "--resume")
+    whole = tmp_path / "whole"
+    run(str(TINY), "--out-dir", str(whole))
+    assert (out / "poses.txt").read_text() == (whole / "poses.txt").read_text()
+
+
+def test_kitti_format_without_a_scan_folder_is_one_error(tmp_path):
+    shutil.copytree(TINY, tmp_path / "s")
+    shutil.rmtree(tmp_path / "s" / "velodyne")
+    r = runner.invoke(app, ["run", str(tmp_path / "s"), "--format", "kitti"])
+    assert r.exit_code == 1 and "velodyne" in r.output and "missing" in r.output
