@@ -81,7 +81,10 @@ def bench_command(
 ) -> None:
     """Per stage and engine: median/p90/max latency, GFLOP/s against this CPU's GEMM peak, frames/s,
     peak RSS, and the speed-up over torch eager (and torch.compile); the CPU and its vector
-    extensions head the output, so a figure is never quoted without its machine."""
+    extensions head the output, so a figure is never quoted without its machine.
+
+    Example: d3lvo bench --runs 30 --no-torch   (the bundled model; --height 352 --width 1216: the paper's size)
+    """
     from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
     from d3lvo_deploy.bench import bench_onnx, peak_rss_mb
     from d3lvo_deploy.bundled import find_real_frames

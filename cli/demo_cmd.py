@@ -25,7 +25,10 @@ def demo_command(
     frames: int = typer.Option(DEMO_FRAMES, "--frames", help="Length of the held-out synthetic sequence."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Model folder (default: the bundled model)."),
 ) -> None:
-    """Generate a held-out synthetic drive, run the ONNX pipeline, score it; then the real frames."""
+    """Generate a held-out synthetic drive, run the ONNX pipeline, score it; then the real frames.
+
+    Example: d3lvo demo --out /tmp/d3lvo-demo
+    """
     from d3lvo_deploy.extras import require
 
     require("embreex", "matplotlib", what="d3lvo demo (it renders a drive and plots it)")

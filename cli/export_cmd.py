@@ -58,7 +58,10 @@ def export_command(
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
 ) -> None:
-    """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed."""
+    """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed.
+
+    Example: d3lvo export --ckpt runs/points.pt --out my_model   (then d3lvo run DRIVE --onnx my_model)
+    """
     import tempfile
 
     from d3lvo_deploy.extras import require

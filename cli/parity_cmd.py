@@ -24,7 +24,10 @@ def parity_command(
                                      "reported, not expected to meet the fp32 tolerances)."),
 ) -> None:
     """Compare torch and the engine per stage output, along the chained pipeline, and against
-    D3LVO.forward on each pair; exit 1 on failure."""
+    D3LVO.forward on each pair; exit 1 on failure.
+
+    Example: d3lvo parity --ckpt runs/points.pt --onnx my_model --json
+    """
     from d3lvo_deploy.backends import SessionConfig
     from d3lvo_deploy.extras import require
 

@@ -55,6 +55,8 @@ def train_command(
     """Train D3LVO; reports loss, and t_rel/r_rel/ATE on --val sequences through the evaluator, with flow, rotation and translation errors beside their baselines (zero flow, no motion).
 
     The loss goes negative, and that is expected: eq. 11 adds the learnable balance terms s_t and s_q themselves (l = |dt| exp(-s_t) + s_t + |dq|^2 exp(-s_q) + s_q), and s_q settles near log(rotation error^2), about -9 for frame-to-frame motion.
+
+    Example: d3lvo train --data runs/data/tr_00 --val runs/data/val_traffic --out runs/points.pt --preset small --pose-head points --steps 2000
     """  # noqa: E501 (typer keeps a docstring's line breaks in --help)
     from d3lvo_deploy.extras import require
 

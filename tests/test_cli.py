@@ -115,3 +115,20 @@ def test_eval_several_estimates_one_table_and_a_scale_hint(tmp_path):
     r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(mono), "--align", "7dof", "--json"])
     res = json.loads(r.stdout)
     assert abs(res["t_rel"] - 2.88) < 0.01 and not any("--align" in n for n in res["notes"])
+
+
+@pytest.mark.parametrize("command", ["demo", "synth", "train", "export", "parity", "run", "eval", "bench"])
+def test_every_help_has_an_example_and_keeps_bracketed_words(command):
+    r = runner.invoke(app, [command, "--help"], terminal_width=200)
+    assert r.exit_code == 0
+    assert f"Example: d3lvo {command}" in r.output, r.output
+    if command == "run":  # rich markup would swallow "[rerun]" and "[openvino]"
+        assert "[rerun]" in r.output and "[openvino]" in r.output
+
+
+def test_top_level_help_lists_the_commands_in_workflow_order():
+    r = runner.invoke(app, ["--help"], terminal_width=200)
+    order = ["demo", "synth", "train", "export", "parity", "run", "eval", "bench"]
+    listed = [line.split()[1] for line in r.output.splitlines() if line.startswith("│ ") and len(line.split()) > 1
+              and line.split()[1] in order]
+    assert listed == order, r.output
