@@ -6,6 +6,8 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 import typer
 from rich.markup import escape
 from rich.table import Table
@@ -38,7 +40,18 @@ def latency_table(stats: dict) -> Table:
 # the options a results folder's config.toml records and `--config` reads back: what decides the
 # poses (where they are written, resume and pictures do not)
 RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "gt", "onnx", "method",
-            "start", "end", "provider", "threads", "backend", "ov_precision", "optimization", "realtime", "viz_every")
+            "start", "end", "provider", "threads", "backend", "ov_precision", "optimization", "realtime", "viz_every",
+            "pipeline")
+
+
+def throughput_line(summary) -> str:
+    """Frames per second of wall time beside the per-frame latency: with the pipeline they differ."""
+    total = summary.latencies_ms.get("total", [])
+    if not total:
+        return ""
+    how = "reading and projecting the next frame beside the network" if summary.pipelined else "one frame at a time"
+    return (f"throughput {summary.throughput:.1f} frames/s ({len(total)} frames in {summary.wall_s:.2f} s, {how}); "
+            f"latency per frame median {float(np.median(total)):.1f} ms")
 
 
 @friendly_errors
@@ -100,6 +113,8 @@ def run_command(
                                      "the CPU's AVX512_BF16/AMX paths; see docs/performance.md)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by their timestamps, like a live sensor."),
+    pipeline: bool = typer.Option(True, "--pipeline/--no-pipeline", help="Read and project frame t+1 on a second "
+                                  "thread while the network works on frame t (same poses; more frames/s)."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),
@@ -165,7 +180,7 @@ def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_t
 def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
          out_path, pose_fmt, config, sequences, engine, workers, address, chunk, overlap, onnx, start, end, resume,
          overwrite, viz, viz_every, rerun, gt, plot, provider, threads, backend, ov_precision, optimization, realtime,
-         method) -> None:
+         pipeline, method) -> None:
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
     from d3lvo_deploy.results import ResultsFolder, default_folder
@@ -195,7 +210,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision)
     sc.check()
-    odometry = None
+    odometry, why, loading = None, "", "loading the model"
     if method == "direct":
         from d3lvo_deploy.direct import DirectConfig, DirectOdometry
         from d3lvo_deploy.manifest import load_manifest
@@ -205,17 +220,25 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         model_config = load_manifest(resolve_model_dir(onnx))["model_config"]
         odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(model_config)), None
     else:
+        from d3lvo_deploy.backends import choose_engine, openvino_compiled
+        from d3lvo_deploy.manifest import load_manifest
+
         model_dir = resolve_model_dir(onnx)
+        manifest = load_manifest(model_dir, verify_hashes=False)
+        frames = (len(seq) if end is None else min(end, len(seq))) - start
+        sc, why = choose_engine(sc, manifest, frames)
+        if sc.backend == "openvino" and not openvino_compiled(sc, manifest):
+            loading = "compiling the model for OpenVINO (the first time on this CPU: ~10 s, cached for later runs)"
     if viz is not None and (method != "d3lvo" or viz_every < 1):
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
     if rerun is not None and viz_every < 1:
         raise D3LVOInputError(rerun, "--viz-every must be at least 1")
     rc = RunConfig(out=out_path, fmt=pose_fmt, start=start, end=end, resume=resume, overwrite=overwrite,
-                   realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun)
+                   realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun, pipeline=pipeline)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # every argument, the output file and the model are checked before the progress bar
-        with console.status("loading the model"):
+        with console.status(loading):
             plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
     _print_warnings(caught)
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
@@ -225,7 +248,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                       cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=gt, onnx=onnx, method=method,
                       start=start, end=end, provider=provider, threads=threads,
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
-                      optimization=optimization, realtime=realtime, viz_every=viz_every)
+                      optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)
         _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
                       seq)
         if fresh:
@@ -238,7 +261,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, None)
         return
     if method == "d3lvo":
-        console.print(f"model {model_dir} on {engine_name}", highlight=False)
+        console.print(f"model {model_dir} on {engine_name} ({why})", highlight=False)
     console.print(f"{_format_of(seq)} recording {seq.root}: {len(seq)} frames; "
                   f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:
@@ -260,6 +283,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
             raise typer.Exit(130) from None
     _print_warnings(caught)
     out.print(latency_table(summary.stats()))
+    out.print(throughput_line(summary), highlight=False)
     out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, {seq.frame_label}, first pose identity)",
               highlight=False)
     _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, summary)
@@ -322,7 +346,9 @@ def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, 
     if folder is not None:
         written.append(folder.write_tum(seq.times, start))
         if summary is not None:
-            written.append(folder.write_json(LATENCY, latency_report(summary.stats(), summary.latencies_ms)))
+            written.append(folder.write_json(LATENCY, {**latency_report(summary.stats(), summary.latencies_ms),
+                                                       "throughput_fps": summary.throughput, "wall_s": summary.wall_s,
+                                                       "pipelined": summary.pipelined}))
         if plot is None:
             from d3lvo_deploy.extras import installed
 

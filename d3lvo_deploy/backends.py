@@ -88,6 +88,63 @@ class SessionConfig:
             raise D3LVOInputError(None, "--ov-precision applies to --backend openvino only")
 
 
+# "auto" on a short run: OpenVINO's first compile of the bundled model takes ~8 s on 2 cores
+# (`d3lvo run` on the 20 real frames: 12.7 s wall the first time, 4.9 s once cached, onnxruntime
+# 4.7 s) and saves ~16 ms per frame after (59.4 vs 75.8 ms, `d3lvo bench`), so it pays back after
+# ~500 frames; below this many, auto keeps onnxruntime unless the compiled graphs are cached
+AUTO_MIN_FRAMES = 1000
+
+
+def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) -> tuple[SessionConfig, str]:
+    """The engine a run takes, and why in words (printed by `d3lvo run`). `frames`: the run's
+    length (None: a stream of unknown length)."""
+    if sc.backend != AUTO:
+        return sc, "asked for"
+    if sc.provider != "cpu" or sc.profile_dir is not None:
+        return replace(sc, backend="onnxruntime"), "auto: a GPU provider or a profile is onnxruntime's"
+    if "openvino" not in available_backends():
+        return replace(sc, backend="onnxruntime"), "auto: OpenVINO is not installed (the [openvino] extra)"
+    ov = replace(sc, backend="openvino")
+    if sc.ov_precision != "f32":
+        return ov, f"auto: --ov-precision {sc.ov_precision} is OpenVINO's"
+    if manifest is not None and openvino_compiled(ov, manifest):
+        return ov, "auto: OpenVINO, the faster engine here, with this model's compiled graphs cached"
+    if frames is None or frames >= AUTO_MIN_FRAMES:
+        return ov, f"auto: OpenVINO, the faster engine here; its first compile (~10 s) pays back over a long run"
+    return replace(sc, backend="onnxruntime"), (
+        f"auto: {frames} frames are too few to pay back OpenVINO's first compile of this model (~10 s); "
+        "`--backend openvino` once caches it, and auto takes it from then on")
+
+
+def _marker(sc: SessionConfig, stage: str, sha256: str) -> str:
+    precision = sc.ov_precision if stage in REDUCED_PRECISION_STAGES else "f32"
+    return f"{sha256[:24]}-{precision}-t{sc.threads}.compiled"
+
+
+def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
+    """Whether every stage of this model was compiled here before with these settings (markers
+    written next to OpenVINO's own cache, which keeps no index of its own)."""
+    try:
+        import openvino
+    except ImportError:
+        return False
+    cache = openvino_cache_dir(openvino.__version__)
+    if cache is None:
+        return False
+    stages = manifest.get("stages", {})
+    threads = {name: single_thread_stage(manifest, name) for name in stages}
+    return all((cache / _marker(replace(sc, threads=1) if threads[n] else sc, n, st["sha256"])).is_file()
+               for n, st in stages.items())
+
+
+def single_thread_stage(manifest: dict, stage: str) -> bool:
+    """The point solver's flow+pose graph runs on one thread: its ~8,400 nodes per frame are 6x6
+    matrices and lists of 2,048 points, too small to split; a second thread costs more than it
+    gains (measured with `d3lvo bench`, docs/performance.md)."""
+    inputs = manifest.get("stages", {}).get(stage, {}).get("inputs", [])
+    return stage == "flowpose" and any(i["name"] == "points1" for i in inputs)
+
+
 def available_backends() -> list[str]:
     """Installed engines, in BACKENDS order."""
     out = ["onnxruntime"]
@@ -157,6 +214,11 @@ class OpenVinoSession:
             self.compiled = OpenVinoSession._core.compile_model(str(path), "CPU", config)
         except Exception as e:  # OpenVINO raises RuntimeError with a long multi-line text
             raise D3LVOInputError(path, f"OpenVINO cannot load it ({str(e).splitlines()[0][:200]})") from None
+        if cache is not None and expected and expected.get("sha256"):
+            try:
+                (cache / _marker(sc, stage, expected["sha256"])).touch()
+            except OSError:
+                pass
         self.request = self.compiled.create_infer_request()
         # a port may carry several tensor names (a converted graph's Cast keeps both): report the
         # one the manifest uses, so the folder check compares like with like

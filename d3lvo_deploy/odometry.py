@@ -47,6 +47,15 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
 
 
 @dataclass
+class PreparedFrame:
+    image: np.ndarray  # the camera image as read (the --viz panels show it)
+    rgb: np.ndarray  # (1,3,h,w) network input
+    inv: np.ndarray | None  # (1,1,h,w) sparse inverse depth (or IP-Basic's), None in rgb mode
+    solver: SolverFrame | None  # the point solver's grey image and points
+    project_ms: float
+
+
+@dataclass
 class FrameTiming:
     ms: dict[str, float] = field(default_factory=dict)
 
@@ -92,20 +101,33 @@ class Odometry:
                                         f"{self.pre.view.src_width}x{self.pre.view.src_height}")
         return self.pre
 
-    def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
-        """Frame -> encoder outputs (the per-frame half of the work)."""
+    def prepare(self, image: np.ndarray, points: np.ndarray | None) -> "PreparedFrame":
+        """The CPU half of a frame, before any network: RGB input, LiDAR projection and IP-Basic,
+        the solver's points. Independent of the previous frame, so a pipeline runs it for frame
+        t+1 on another thread while the network works on frame t (after the first frame, which
+        fixes the view)."""
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
-        t = {}
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
         rgb = pre.rgb_input(image)
         scan = clean_scan(points) if self.model.depth_input != "none" else None
         inv = pre.invdepth_input(scan)
-        t["project"] = (time.perf_counter() - t0) * 1000
+        solver = None
+        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
+            solver = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points)
+        return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
+
+    def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
+        """Frame -> encoder outputs (the per-frame half of the work)."""
+        return self.encode_prepared(self.prepare(image, points))
+
+    def encode_prepared(self, frame: "PreparedFrame") -> dict[str, np.ndarray]:
+        t = {"project": frame.project_ms}
         t0 = time.perf_counter()
+        rgb, inv = frame.rgb, frame.inv
         if self.keep_outputs:
-            self.last = {"image": pre.view.apply_image(image), "sparse_invdepth": inv}
+            self.last = {"image": self.pre.view.apply_image(frame.image), "sparse_invdepth": inv}
         sparse = inv
         if "completion" in self.model.sessions:
             inv = self.model.complete(rgb, inv)
@@ -115,16 +137,18 @@ class Odometry:
         t0 = time.perf_counter()
         enc = self.model.encode(rgb, inv, sparse)
         t["encoder"] = (time.perf_counter() - t0) * 1000
-        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
-            t0 = time.perf_counter()
-            enc["solver_frame"] = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points)
-            t["project"] += (time.perf_counter() - t0) * 1000
+        if frame.solver is not None:
+            enc["solver_frame"] = frame.solver
         self.last_timing = FrameTiming(t)
         return enc
 
     def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
-        enc = self.encode(image, points)
+        return self.step_prepared(self.prepare(image, points))
+
+    def step_prepared(self, frame: "PreparedFrame") -> np.ndarray:
+        """`step` on a frame `prepare` has already done (by a pipeline's reader thread)."""
+        enc = self.encode_prepared(frame)
         t0 = time.perf_counter()
         if self._prev is not None:
             camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None

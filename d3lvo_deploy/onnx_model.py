@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 # SessionConfig and the onnxruntime settings are re-exported: they lived here before backends.py
-from .backends import OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig, open_session  # noqa: F401
+from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig,  # noqa: F401
+                       open_session, single_thread_stage)
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import load_manifest
@@ -51,13 +52,6 @@ def _point_solver(stage: dict) -> bool:
     return any(i["name"] == "points1" for i in stage.get("inputs", []))
 
 
-def single_threaded(sc: SessionConfig) -> SessionConfig:
-    """The point solver's graph on one thread: its ~8,400 nodes per frame are 6x6 matrices and
-    lists of 2,048 points, too small to split; a second thread costs more than it gains (measured
-    with `d3lvo bench`, docs/performance.md)."""
-    return replace(sc, threads=1)
-
-
 class StageModel:
     def __init__(self, model_dir: str | Path, sc: SessionConfig = SessionConfig()):
         self.dir = Path(model_dir)
@@ -74,8 +68,8 @@ class StageModel:
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
         for name, st in self.manifest["stages"].items():
             path = self.dir / st["file"]
-            solo = name == "flowpose" and self.point_solver
-            sess = open_session(path, single_threaded(sc) if solo else sc, name, st)
+            sess = open_session(path, replace(sc, threads=1) if single_thread_stage(self.manifest, name) else sc,
+                                name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for

@@ -9,6 +9,7 @@ digits, which read back to the same float64).
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -42,6 +43,14 @@ class RunSummary:
     resumed_from: int = 0
     latencies_ms: dict[str, list[float]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    wall_s: float = 0.0  # from the first frame read to the last pose written
+    pipelined: bool = False
+
+    @property
+    def throughput(self) -> float:
+        """Frames per second of wall time: with the pipeline, more than 1000 / per-frame latency."""
+        done = self.frames - self.resumed_from
+        return done / self.wall_s if self.wall_s > 0 else float("nan")
 
     def stats(self) -> dict[str, dict[str, float]]:
         out = {}
@@ -64,6 +73,9 @@ class RunConfig:
     viz_dir: Path | None = None  # write a picture of what the network sees every `viz_every` frames
     viz_every: int = 10  # also the frames whose images go into the Rerun recording
     rerun_path: Path | None = None  # write a Rerun recording (.rrd) of the run
+    # read and prepare frame t+1 (image, scan, projection, IP-Basic, solver points) on a second
+    # thread while the network works on frame t; the poses are the same either way
+    pipeline: bool = True
 
 
 def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
@@ -173,12 +185,11 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
                       done[-2] if len(done) >= 2 else None)
         t_wall0 = time.perf_counter()
-        for j in range(len(done), n):
-            i = rc.start + j
-            if rc.realtime:
-                wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
-                if wait > 0:
-                    time.sleep(wait)
+        pipelined = rc.pipeline and hasattr(odo, "prepare") and n - len(done) > 1
+        summary.pipelined = pipelined
+
+        def load(i: int):
+            """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved."""
             t0 = time.perf_counter()
             try:
                 image = seq.image(i)
@@ -187,24 +198,44 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
                                               f"{out}, fix the frame and rerun with --resume") from None
             read_ms = (time.perf_counter() - t0) * 1000
-            if pictures and hasattr(odo, "keep_outputs"):
-                odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
-            pose = odo.step(image, points)
-            view = None
-            if getattr(odo, "keep_outputs", False):  # a chosen frame: what the network saw, once for both
-                view = network_view(odo.last, odo.model.dense_depth_m, "completion" in odo.model.sessions)
-            if rc.viz_dir is not None and view is not None:
-                _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", view)
-            if recorder is not None:
-                recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
-            line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
-            fh.write(line + "\n")
-            fh.flush()
-            for k, v in odo.last_timing.ms.items():
-                summary.latencies_ms[k].append(v)
-            summary.latencies_ms.setdefault("read", []).append(read_ms)
-            summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
-            if progress is not None:
-                progress(j + 1, n, odo.last_timing.total + read_ms)
+            prepared = odo.prepare(image, points) if pipelined and odo.pre is not None else None
+            return image, points, prepared, read_ms
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-read") if pipelined else None
+        try:
+            ahead = None
+            for j in range(len(done), n):
+                i = rc.start + j
+                if rc.realtime:
+                    wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
+                    if wait > 0:
+                        time.sleep(wait)
+                image, points, prepared, read_ms = ahead.result() if ahead is not None else load(i)
+                ahead = pool.submit(load, i + 1) if pool is not None and j + 1 < n and odo.pre is not None else None
+                if pictures and hasattr(odo, "keep_outputs"):
+                    odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
+                pose = odo.step_prepared(prepared) if prepared is not None else odo.step(image, points)
+                if pool is not None and ahead is None and j + 1 < n:  # the first frame fixed the view
+                    ahead = pool.submit(load, i + 1)
+                view = None
+                if getattr(odo, "keep_outputs", False):  # a chosen frame: what the network saw, once for both
+                    view = network_view(odo.last, odo.model.dense_depth_m, "completion" in odo.model.sessions)
+                if rc.viz_dir is not None and view is not None:
+                    _write_viz(rc.viz_dir / f"{seq.frame_names[i]}.png", view)
+                if recorder is not None:
+                    recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
+                line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
+                fh.write(line + "\n")
+                fh.flush()
+                for k, v in odo.last_timing.ms.items():
+                    summary.latencies_ms[k].append(v)
+                summary.latencies_ms.setdefault("read", []).append(read_ms)
+                summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
+                summary.wall_s = time.perf_counter() - t_wall0
+                if progress is not None:
+                    progress(j + 1, n, odo.last_timing.total + read_ms)
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
     return summary
 

@@ -175,3 +175,30 @@ def test_openvino_compiled_models_are_cached_per_engine_and_cpu(small_model, tmp
     rgb = np.random.default_rng(0).normal(size=(1, 3, first.height, first.width)).astype(np.float32)
     inv = np.zeros((1, 1, first.height, first.width), np.float32)
     np.testing.assert_array_equal(first.complete(rgb, inv), second.complete(rgb, inv))
+
+
+def test_auto_keeps_a_short_run_off_an_uncompiled_openvino(small_model, tmp_path, monkeypatch):
+    """auto: a short run on onnxruntime until OpenVINO has compiled this model here (its first
+    compile would cost more than it saves), OpenVINO for a long run or once cached; the reason
+    is given in words."""
+    pytest.importorskip("openvino")
+    from d3lvo_deploy.backends import AUTO_MIN_FRAMES, choose_engine
+    from d3lvo_deploy.manifest import load_manifest
+
+    monkeypatch.setenv("D3LVO_CACHE", str(tmp_path / "cache"))
+    _, onnx_dir = small_model
+    manifest = load_manifest(onnx_dir)
+    auto = SessionConfig(backend="auto")
+    sc, why = choose_engine(auto, manifest, 20)
+    assert sc.backend == "onnxruntime" and "20 frames are too few" in why
+    assert choose_engine(auto, manifest, AUTO_MIN_FRAMES)[0].backend == "openvino"
+    assert choose_engine(auto, manifest, None)[0].backend == "openvino"  # a stream of unknown length
+    assert choose_engine(SessionConfig(backend="onnxruntime"), manifest, 10**6) == (
+        SessionConfig(backend="onnxruntime"), "asked for")
+    StageModel(onnx_dir, SessionConfig(backend="openvino"))  # compiles, and the cache remembers it
+    sc, why = choose_engine(auto, manifest, 20)
+    assert sc.backend == "openvino" and "cached" in why
+    # threads are part of what OpenVINO compiled: another count is another compile
+    assert choose_engine(SessionConfig(backend="auto", threads=1), manifest, 20)[0].backend == "onnxruntime"
+    # an OpenVINO precision asks for OpenVINO
+    assert choose_engine(SessionConfig(backend="auto", ov_precision="bf16"), manifest, 20)[0].backend == "openvino"

@@ -342,3 +342,17 @@ def test_readme_api_example_runs_as_pasted(monkeypatch, capsys):
     printed = capsys.readouterr().out.strip().splitlines()
     assert len(printed) == 3 and "flowpose" in printed[-1]
     assert printed[0].startswith("[0. 0. 0.]")  # the first frame is the origin
+
+
+def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp_path):
+    """Frame t+1 read and projected on a second thread while the network works on frame t: the
+    same bytes as one frame at a time, and the output says which it did."""
+    _, onnx_dir = small_model
+    outs = {}
+    for flag in ("--pipeline", "--no-pipeline"):
+        out = tmp_path / f"{flag}.txt"
+        r = runner.invoke(app, ["run", str(small_synth), "--onnx", str(onnx_dir), "--out", str(out), flag])
+        assert r.exit_code == 0, r.output
+        assert ("beside the network" in r.output) == (flag == "--pipeline"), r.output
+        outs[flag] = out.read_bytes()
+    assert outs["--pipeline"] == outs["--no-pipeline"]
