@@ -174,12 +174,30 @@ class OrtSession:
             os.makedirs(sc.profile_dir, exist_ok=True)
             so.enable_profiling = True
             so.profile_file_prefix = str(Path(sc.profile_dir) / stage)
-        try:
-            self.sess = ort.InferenceSession(str(path), so, providers=resolve_providers(sc.provider))
-        except D3LVOInputError:
-            raise
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+        providers = resolve_providers(sc.provider)
+        cached = ort_cache_file(sc, stage, expected) if providers == ["CPUExecutionProvider"] else None
+        self.sess = None
+        if cached is not None and cached.is_file():
+            # optimised here before: load it as is, skipping the optimiser (most of a cold start)
+            so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+            try:
+                self.sess = ort.InferenceSession(str(cached), so, providers=providers)
+            except Exception:  # noqa: BLE001 - a damaged cache entry: optimise afresh
+                cached.unlink(missing_ok=True)
+                so.graph_optimization_level = OPT_LEVELS[sc.optimization]
+        if self.sess is None:
+            tmp = None
+            if cached is not None:
+                tmp = cached.with_name(f".{cached.name}.{os.getpid()}.tmp")
+                so.optimized_model_filepath = str(tmp)
+            try:
+                self.sess = ort.InferenceSession(str(path), so, providers=providers)
+            except D3LVOInputError:
+                raise
+            except Exception as e:  # onnxruntime raises its own exception types
+                raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+            if tmp is not None and tmp.is_file():
+                os.replace(tmp, cached)
         self.inputs = [(i.name, list(i.shape)) for i in self.sess.get_inputs()]
         self.outputs = [o.name for o in self.sess.get_outputs()]
 
@@ -237,11 +255,25 @@ class OpenVinoSession:
         return ""
 
 
+def ort_cache_file(sc: SessionConfig, stage: str, expected: dict | None) -> Path | None:
+    """Where onnxruntime keeps this stage's optimised graph (full optimisation only, no
+    profiling): keyed by the stage's hash (the manifest's), the thread count, the onnxruntime
+    version and the CPU, since the optimised graph holds kernels chosen for them."""
+    if sc.optimization != "all" or sc.profile_dir or not expected or not expected.get("sha256"):
+        return None
+    folder = engine_cache_dir("onnxruntime", ort.__version__)
+    return None if folder is None else folder / f"{stage}-{expected['sha256'][:24]}-t{sc.threads}.onnx"
+
+
 def openvino_cache_dir(version: str) -> Path | None:
-    """Where OpenVINO keeps compiled models between runs: compiling the point solver's graph takes
-    ~10 s on 2 cores, loading it from the cache under a second. OpenVINO keys each entry by the
-    model's contents and the compile options; the folder adds the engine version and the CPU, so a
-    blob is never read by another OpenVINO or on another machine sharing a home folder.
+    return engine_cache_dir("openvino", version)
+
+
+def engine_cache_dir(engine: str, version: str) -> Path | None:
+    """Where an engine keeps compiled or optimised models between runs: compiling the point
+    solver's graph takes OpenVINO ~10 s on 2 cores, onnxruntime's optimiser ~1.5 s; loading either
+    from the cache well under a second. The folder names the engine version and the CPU, so an
+    entry is never read by another version or on another machine sharing a home folder.
     `D3LVO_CACHE` moves it; None (no cache) where it cannot be written."""
     import hashlib
 
@@ -249,7 +281,7 @@ def openvino_cache_dir(version: str) -> Path | None:
 
     root = Path(os.environ.get("D3LVO_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "d3lvo")
     cpu = hashlib.sha1(cpu_info().line().encode()).hexdigest()[:10]
-    folder = root / f"openvino-{''.join(c if c.isalnum() or c == '.' else '_' for c in version)}-{cpu}"
+    folder = root / f"{engine}-{''.join(c if c.isalnum() or c == '.' else '_' for c in version)}-{cpu}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

@@ -202,3 +202,28 @@ def test_auto_keeps_a_short_run_off_an_uncompiled_openvino(small_model, tmp_path
     assert choose_engine(SessionConfig(backend="auto", threads=1), manifest, 20)[0].backend == "onnxruntime"
     # an OpenVINO precision asks for OpenVINO
     assert choose_engine(SessionConfig(backend="auto", ov_precision="bf16"), manifest, 20)[0].backend == "openvino"
+
+
+def test_onnxruntime_keeps_its_optimised_graphs(small_model, tmp_path, monkeypatch):
+    """The optimiser's output is saved per stage and loaded as is the next time (the same numbers);
+    a damaged entry is optimised afresh, not an error."""
+    from d3lvo_deploy.backends import ort_cache_file
+
+    monkeypatch.setenv("D3LVO_CACHE", str(tmp_path / "cache"))
+    _, onnx_dir = small_model
+    sc = SessionConfig(backend="onnxruntime", threads=1)
+    first = StageModel(onnx_dir, sc)
+    files = {st: ort_cache_file(sc, st, e) for st, e in first.manifest["stages"].items()}
+    assert all(f is not None and f.is_file() for f in files.values()), files
+    stamps = {st: f.stat().st_mtime_ns for st, f in files.items()}
+    second = StageModel(onnx_dir, sc)
+    assert {st: f.stat().st_mtime_ns for st, f in files.items()} == stamps  # read, not rewritten
+    rgb = np.random.default_rng(0).normal(size=(1, 3, first.height, first.width)).astype(np.float32)
+    inv = np.zeros((1, 1, first.height, first.width), np.float32)
+    np.testing.assert_array_equal(first.complete(rgb, inv), second.complete(rgb, inv))
+    files["completion"].write_bytes(b"not an onnx file")
+    third = StageModel(onnx_dir, sc)
+    np.testing.assert_array_equal(third.complete(rgb, inv), first.complete(rgb, inv))
+    assert files["completion"].stat().st_size > 1000  # rewritten from the optimiser
+    # no cache for another optimisation level: the optimiser's output is what that level asks for
+    assert ort_cache_file(SessionConfig(optimization="basic"), "completion", first.manifest["stages"]["completion"]) is None
