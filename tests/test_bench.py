@@ -132,3 +132,27 @@ def test_cli_bench_precision_errors(small_model):
     assert r.exit_code == 1 and "needs --ckpt or --height/--width" in r.output
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "int4"])
     assert r.exit_code == 1 and "fp32, fp16 or int8" in r.output
+
+
+def test_pipelined_fps_steps_every_frame_in_order_once():
+    """The pipelined timing prepares frame k+1 while frame k steps: every frame, in order, each
+    prepared once (one more is prepared ahead and dropped)."""
+    from d3lvo_deploy.bench import pipelined_fps
+
+    class Recorder:
+        def __init__(self):
+            self.prepared, self.stepped = [], []
+
+        def prepare(self, image, points):
+            self.prepared.append(image)
+            return image
+
+        def step_prepared(self, frame):
+            self.stepped.append(frame)
+
+    rec = Recorder()
+    frames = [(k, None) for k in range(4)]
+    fps = pipelined_fps(rec, frames, 6)
+    assert rec.stepped == [0, 1, 2, 3, 0, 1]
+    assert rec.prepared == [0, 1, 2, 3, 0, 1, 2]
+    assert fps > 0
