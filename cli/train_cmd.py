@@ -47,6 +47,9 @@ def train_command(
     seed: int = typer.Option(0, "--seed", help="Seed of weights, sampling and augmentation."),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
     workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
+    solver_loss: float = typer.Option(0.0, "--solver-loss", help="The point head: weight of the pose loss through "
+                                      "the Gauss-Newton solver into the confidence (0: motion masks only; turns off "
+                                      "flip and rotation augmentation, which the solver's images do not get)."),
     solver: list[str] = typer.Option([], "--set", help="Solver setting without weights, KEY=VALUE (pt_iters, "
                                      "pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_conf_power, pt_gate; gn_points, "
                                      "gn_iters, gn_huber, gn_damping, gn_lidar_pool); repeatable; may differ from "
@@ -65,6 +68,7 @@ def train_command(
 
     from models.checkpoint import load_checkpoint
     from models.config import SOLVER_KEYS, D3LVOConfig
+    from models.loss import LossConfig
     from models.train import TrainConfig, TrainingInterrupted, best_path, train
 
     from .export_cmd import solver_settings
@@ -102,7 +106,10 @@ def train_command(
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
-                     device=device, num_workers=workers, init=str(init) if init else None)
+                     device=device, num_workers=workers, init=str(init) if init else None,
+                     loss=LossConfig(solver_pose_weight=solver_loss))
+    if solver_loss < 0 or (solver_loss > 0 and cfg.pose_head != "points"):
+        raise D3LVOInputError(None, "--solver-loss is a non-negative weight for the point head (--pose-head points)")
     rank0 = int(os.environ.get("RANK", "0")) == 0
     with frame_progress() as bar:
         task = bar.add_task("train", total=steps, rate="", visible=rank0)

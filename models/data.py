@@ -145,8 +145,14 @@ class FrameLoader:
 
 class PairDataset(Dataset):
     def __init__(self, seq_dirs: list[str | Path], cfg: D3LVOConfig, augment: AugmentConfig | None = None,
-                 seed: int = 0):
-        self.cfg, self.augment, self.seed = cfg, augment, seed
+                 seed: int = 0, solver: bool = False):
+        """`solver`: each sample also carries the point solver's inputs (camera-resolution grey
+        images and frame t-1's points), for a pose loss through the solver; the solver reads the
+        camera's own images, so flips and rotations, which would have to be applied to them too,
+        must be off."""
+        if solver and augment is not None and (augment.flip > 0 or augment.rotation_deg > 0):
+            raise ValueError("the solver's inputs are not augmented: flip and rotation_deg must be 0 with solver=True")
+        self.cfg, self.augment, self.seed, self.solver = cfg, augment, seed, solver
         self.loaders: list[FrameLoader] = []
         self.items: list[tuple[int, int]] = []
         for d in seq_dirs:
@@ -240,7 +246,12 @@ class PairDataset(Dataset):
             valid = (maps[2] > 0.5).astype(np.float32)[None]
             flow = (np.stack([maps[0], maps[1]]) * valid).astype(np.float32)
         t = lambda x: torch.from_numpy(np.ascontiguousarray(x))  # noqa: E731
+        solver = {}
+        if self.solver:
+            feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i), L.seq.calib.K2, self.cfg.pt_capacity)
+            solver = {n: t(a[0]) for n, a in feeds.items()}  # the loader stacks the batch
         return {
+            **solver,
             "rgb1": t(imgs[0]).permute(2, 0, 1), "rgb2": t(imgs[1]).permute(2, 0, 1),
             "depth1": t(deps[0])[None], "depth2": t(deps[1])[None],
             "gt_depth1": t(gts[0])[None], "gt_depth2": t(gts[1])[None],

@@ -28,6 +28,10 @@ class LossConfig:
     flow_weight: float = 0.5  # EPE (cells of each level) against the rigid flow of GT depth + GT pose
     # binary cross-entropy of the point head's 'moves on its own' logits against the motion masks
     motion_weight: float = 1.0
+    # the point head: eq. 11 on the solver's own poses, backpropagated through the Gauss-Newton
+    # steps into the confidence, so that it learns which points help the pose, not only which move;
+    # 0: the confidence learns from the motion masks alone (and training runs no solver)
+    solver_pose_weight: float = 0.0
 
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:

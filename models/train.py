@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -54,6 +54,10 @@ class TrainConfig:
     device: str = "auto"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+
+
+# the point solver's inputs in a sample (d3lvo_deploy.points.solver_feeds)
+SOLVER_FEEDS = ("image1", "image2", "points1", "point_mask1", "image_intrinsics")
 
 
 def lr_factor(step: int, warmup: int, total: int) -> float:
@@ -283,7 +287,11 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     elif tc.init and load_matching(model, tc.init) == 0:
         raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to start from")
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
-    data = PairDataset(tc.data, cfg, augment=tc.augment, seed=tc.seed)
+    solver_loss = tc.loss.solver_pose_weight > 0
+    if solver_loss and not cfg.point_solver:
+        raise ValueError("a pose loss through the solver needs the point head (pose_head='points')")
+    augment = replace(tc.augment, flip=0.0, rotation_deg=0.0) if solver_loss else tc.augment
+    data = PairDataset(tc.data, cfg, augment=augment, seed=tc.seed, solver=solver_loss)
     if len(data) == 0:
         raise D3LVOInputError(None, "no training pairs: the --data sequences need at least 2 frames")
     if distributed:
@@ -316,10 +324,13 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 if step >= end:
                     break
                 ddp_model.train()
+                solver = {k: b[k].to(device) for k in SOLVER_FEEDS} if solver_loss else None
                 out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
-                                b["K"].to(device), b["init"].to(device))
+                                b["K"].to(device), b["init"].to(device), solver)
                 if "poses" in out:
                     pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
+                    if solver_loss:
+                        pose_loss = tc.loss.solver_pose_weight * pose_loss
                 else:  # the point head: its pose is the solver's; its confidence learns from the masks
                     pose_loss, parts = torch.zeros((), device=device), {}
                 comp = completion_loss(out, b, device)

@@ -238,3 +238,43 @@ def test_init_takes_matching_weights_and_refuses_a_foreign_checkpoint(tmp_path, 
     tc = TrainConfig(data=[str(small_synth)], out=str(tmp_path / "x.pt"), steps=1, init=str(other))
     with pytest.raises(D3LVOInputError, match="none of its weights fits"):
         train(cfg, tc)
+
+
+def test_pose_error_gradient_through_the_solver_blames_the_moved_points():
+    """The solver is differentiable in the point weights: on the plane whose left half moved like
+    another object, the gradient of the pose error raises the error with the moved points' weight
+    and lowers it with the static ones': what a pose loss through the solver teaches the
+    confidence."""
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (img0, img1, _), (g0, g1, pts, mask), X = _plane_inputs(A)
+    left = torch.as_tensor((calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) < 310)
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1m = _t(grey_image(moved))[None, None]
+    weights = mask.clone().requires_grad_(True)
+    M = solve(g0, g1m, pts, weights, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1]
+    err = ((M[0, :3, 3] - _t(A[:3, 3])) ** 2).sum()
+    err.backward()
+    g = weights.grad[0, : len(X)]
+    assert float(g[left].mean()) > 0 > float(g[~left].mean()), (float(g[left].mean()), float(g[~left].mean()))
+
+
+def test_training_with_a_pose_loss_through_the_solver(small_synth, tmp_path):
+    """--solver-loss: samples carry the solver's inputs, eq. 11 is taken on the solver's poses,
+    and flips and rotations (which the solver's camera images would not get) are refused."""
+    from models.config import D3LVOConfig
+    from models.data import AugmentConfig, PairDataset
+    from models.loss import LossConfig
+    from models.train import TrainConfig, train
+
+    cfg = D3LVOConfig.small(height=64, width=224, pose_head="points")
+    with pytest.raises(ValueError, match="flip and rotation_deg must be 0"):
+        PairDataset([small_synth], cfg, augment=AugmentConfig(), solver=True)
+    item = PairDataset([small_synth], cfg, augment=None, solver=True)[0]
+    assert item["points1"].shape == (cfg.pt_capacity, 3) and item["image1"].ndim == 3
+    tc = TrainConfig(data=[str(small_synth)], out=str(tmp_path / "s.pt"), steps=2, batch_size=2,
+                     loss=LossConfig(solver_pose_weight=1.0))
+    rec = train(cfg, tc)
+    assert rec["pose_loss"] != 0.0 and "level2" in rec, rec
+    off = train(cfg, TrainConfig(data=[str(small_synth)], out=str(tmp_path / "m.pt"), steps=2, batch_size=2))
+    assert off["pose_loss"] == 0.0
