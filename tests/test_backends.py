@@ -204,13 +204,20 @@ def test_auto_keeps_a_short_run_off_an_uncompiled_openvino(small_model, tmp_path
     assert choose_engine(SessionConfig(backend="auto", ov_precision="bf16"), manifest, 20)[0].backend == "openvino"
 
 
-def test_onnxruntime_keeps_its_optimised_graphs(small_model, tmp_path, monkeypatch):
-    """The optimiser's output is saved per stage and loaded as is the next time (the same numbers);
-    a damaged entry is optimised afresh, not an error."""
+def test_onnxruntime_keeps_its_optimised_graphs(small_model, small_synth, tmp_path, monkeypatch):
+    """The optimiser's output is saved per stage and loaded as is the next time (the same numbers,
+    the same trajectory); a damaged entry is optimised afresh, not an error."""
     from d3lvo_deploy.backends import ort_cache_file
+    from d3lvo_deploy.odometry import Odometry
 
     monkeypatch.setenv("D3LVO_CACHE", str(tmp_path / "cache"))
     _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+
+    def trajectory(model):
+        odo = Odometry(onnx_dir, seq.calib, model=model)
+        return np.stack([odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))])
+
     sc = SessionConfig(backend="onnxruntime", threads=1)
     first = StageModel(onnx_dir, sc)
     files = {st: ort_cache_file(sc, st, e) for st, e in first.manifest["stages"].items()}
@@ -218,6 +225,7 @@ def test_onnxruntime_keeps_its_optimised_graphs(small_model, tmp_path, monkeypat
     stamps = {st: f.stat().st_mtime_ns for st, f in files.items()}
     second = StageModel(onnx_dir, sc)
     assert {st: f.stat().st_mtime_ns for st, f in files.items()} == stamps  # read, not rewritten
+    np.testing.assert_array_equal(trajectory(first), trajectory(second))
     rgb = np.random.default_rng(0).normal(size=(1, 3, first.height, first.width)).astype(np.float32)
     inv = np.zeros((1, 1, first.height, first.width), np.float32)
     np.testing.assert_array_equal(first.complete(rgb, inv), second.complete(rgb, inv))
