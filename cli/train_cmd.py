@@ -24,8 +24,13 @@ def baseline_line(m: dict) -> str:
 
 @friendly_errors
 def train_command(
-    data: list[Path] = typer.Option(..., "--data", help="Training sequence folder (repeat for several)."),
-    out: Path = typer.Option(..., "--out", help="Checkpoint path (written atomically every --ckpt-every steps)."),
+    ctx: typer.Context,
+    data: list[Path] = typer.Option([], "--data", help="Training sequence folder (repeat for several)."),
+    out: Path | None = typer.Option(None, "--out", help="Checkpoint path (written atomically every --ckpt-every "
+                                    "steps; the resolved config is written beside it as OUT.toml)."),
+    config: Path | None = typer.Option(None, "--config", help="TOML with [model] (preset and any width, level or "
+                                       "solver field), [train], [loss], [augment]; command-line options win "
+                                       "(docs/training.md)."),
     val: list[Path] = typer.Option([], "--val", help="Validation sequence folder (repeatable)."),
     steps: int = typer.Option(1000, "--steps", help="Optimizer steps in all (a resumed run counts from where it was)."),
     resume: Path | None = typer.Option(None, "--resume", help="Continue from this checkpoint."),
@@ -33,7 +38,8 @@ def train_command(
                                        "learning-rate schedule still spans --steps (a long run in parts)."),
     mode: str = typer.Option("rgb_completion", "--mode", help="rgb | rgb_sparse | rgb_completion."),
     completion: str = typer.Option("learned", "--completion", help="learned | ipbasic."),
-    preset: str = typer.Option("default", "--preset", help="default (1216x352) | small (the same network at 608x176, CPU)."),
+    preset: str = typer.Option("default", "--preset", help="default (the realtime network, 1216x352) | small (the same "
+                               "at 608x176, CPU) | paper (as the paper sizes it: flow at 4 levels, MLP head; GPU)."),
     pose_head: str = typer.Option("auto", "--pose-head", help="points (the direct solver on the LiDAR points under "
                                   "a learned confidence; the bundled model's) | gauss_newton (on the network's cells; "
                                   "auto where there is depth) | mlp (the paper's regression) | auto."),
@@ -46,6 +52,8 @@ def train_command(
     ckpt_every: int = typer.Option(100, "--ckpt-every", help="Steps between checkpoints (to --resume from)."),
     seed: int = typer.Option(0, "--seed", help="Seed of weights, sampling and augmentation."),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
+    precision: str = typer.Option("fp32", "--precision", help="fp32 | bf16 (autocast on CPU and GPU) | fp16 (GPU, "
+                                  "with a gradient scaler); the pose solvers always run in fp32."),
     workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
     solver_loss: float = typer.Option(0.0, "--solver-loss", help="The point head: weight of the pose loss through "
                                       "the Gauss-Newton solver into the confidence (0: motion masks only; turns off "
@@ -61,30 +69,72 @@ def train_command(
 
     Example: d3lvo train --data runs/data/tr_00 --val runs/data/val_traffic --out runs/points.pt --preset small --pose-head points --steps 2000
     """  # noqa: E501 (typer keeps a docstring's line breaks in --help)
+    opts = {k: v for k, v in locals().items() if k != "ctx"}
+    file: dict = {"model": {}, "train": {}, "loss": {}, "augment": {}}
+    if config is not None:
+        file = _apply_config(ctx, opts, config)
+    _train(file=file, **opts)
+
+
+# [train] / [model] / [loss] keys that are also command-line options: (table, key) -> option
+FILE_OPTIONS = {("train", "data"): "data", ("train", "out"): "out", ("train", "val"): "val",
+                ("train", "steps"): "steps", ("train", "stop_at"): "stop_at", ("train", "batch_size"): "batch_size",
+                ("train", "lr"): "lr", ("train", "val_every"): "val_every", ("train", "ckpt_every"): "ckpt_every",
+                ("train", "seed"): "seed", ("train", "device"): "device", ("train", "num_workers"): "workers",
+                ("train", "init"): "init", ("train", "precision"): "precision", ("model", "preset"): "preset",
+                ("model", "mode"): "mode", ("model", "completion"): "completion", ("model", "pose_head"): "pose_head",
+                ("loss", "solver_pose_weight"): "solver_loss"}
+
+
+def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
+    """File values for the options not given on the command line; returns the file's other keys."""
+    from models.train_config import read_train_config
+
+    file = read_train_config(config)
+    for (table, key), name in FILE_OPTIONS.items():
+        if key not in file[table]:
+            continue
+        value = file[table].pop(key)
+        if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") in ("DEFAULT", "DEFAULT_MAP"):
+            if key in ("data", "val"):
+                value = [Path(v) for v in value]
+            elif key in ("out", "init") and value is not None:
+                value = Path(value)
+            opts[name] = value
+    return file
+
+
+def _train(data, out, config, val, steps, resume, stop_at, mode, completion, preset, pose_head, init, batch_size, lr,
+           val_every, ckpt_every, seed, device, precision, workers, solver_loss, solver, file) -> None:
     from d3lvo_deploy.extras import require
 
     require("torch", what="d3lvo train")
     from dataclasses import replace
 
     from models.checkpoint import load_checkpoint
-    from models.config import SOLVER_KEYS, D3LVOConfig
+    from models.config import SOLVER_KEYS
+    from models.data import AugmentConfig
     from models.loss import LossConfig
     from models.train import TrainConfig, TrainingInterrupted, best_path, train
+    from models.train_config import model_config
 
     from .export_cmd import solver_settings
 
-    if preset not in ("default", "small"):
-        raise D3LVOInputError(None, f"--preset must be default or small, not {preset!r}")
+    if not data:
+        raise D3LVOInputError(config, "give training sequences: --data DIR (repeatable) or data = [...] in [train]")
+    if out is None:
+        raise D3LVOInputError(config, "give the checkpoint to write: --out FILE.pt or out = '...' in [train]")
+    if precision not in ("fp32", "bf16", "fp16"):
+        raise D3LVOInputError(None, f"--precision must be fp32, bf16 or fp16, not {precision!r}")
     settings = solver_settings(solver)
     if init is not None and resume is not None:
         raise D3LVOInputError(init, "--init starts a new training; --resume continues one: give one of them")
     if init is not None:
         load_checkpoint(init)  # a bad file is one error before any work
-    try:
-        cfg = (D3LVOConfig.small if preset == "small" else D3LVOConfig)(mode=mode, completion=completion,
-                                                                         pose_head=pose_head, **settings)
-    except (TypeError, ValueError) as e:
-        raise D3LVOInputError(None, str(e)) from None
+    from models.train_config import model_config
+
+    cfg = model_config(config, {**file["model"], "preset": preset}, mode=mode, completion=completion,
+                       pose_head=pose_head, **settings)
     from d3lvo_deploy.sequence import KittiSequence
 
     for d in [*data, *val]:
@@ -106,11 +156,23 @@ def train_command(
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
-                     device=device, num_workers=workers, init=str(init) if init else None,
-                     loss=LossConfig(solver_pose_weight=solver_loss))
+                     device=device, num_workers=workers, init=str(init) if init else None, precision=precision,
+                     loss=replace(LossConfig(**file["loss"]), solver_pose_weight=solver_loss),
+                     augment=AugmentConfig(**file["augment"]), **file["train"])
     if solver_loss < 0 or (solver_loss > 0 and cfg.pose_head != "points"):
         raise D3LVOInputError(None, "--solver-loss is a non-negative weight for the point head (--pose-head points)")
+    if precision == "fp16":
+        import torch
+
+        if device == "cpu" or not torch.cuda.is_available():
+            raise D3LVOInputError(None, "--precision fp16 trains on a CUDA GPU (its gradient scaler); use bf16 on the CPU")
     rank0 = int(os.environ.get("RANK", "0")) == 0
+    if rank0 and resume is None:
+        from models.train_config import write_train_config
+
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        console.print(f"configuration in {write_train_config(Path(out).with_suffix('.toml'), cfg, tc)} "
+                      "(--config repeats it)", highlight=False)
     with frame_progress() as bar:
         task = bar.add_task("train", total=steps, rate="", visible=rank0)
 

@@ -203,6 +203,28 @@ class D3LVOConfig:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
     @classmethod
+    def paper(cls, **kw) -> "D3LVOConfig":
+        """The network as the paper sizes it, for GPU training: 1216x352, flow at all four pyramid
+        levels h/16..h/2 (Sec. III-C), the MLP pose head P (256, 128, 64) with hierarchical
+        refinement and eq. 10's learned level weights, a PWC-Net-like pyramid (16, 32, 64, 96
+        channels; the paper builds on PWC-Net without giving widths) and wider PENet-style
+        completion. Cross attention stays at h/16: the paper gives no level, and its token count
+        grows 4x per finer level (`python -m models.stats` prints params and FLOPs)."""
+        base = dict(height=352, width=1216, flow_levels=(3, 2, 1, 0), pose_head="mlp",
+                    completion_widths=(32, 64, 128), rgb_widths=(16, 32, 64, 96), depth_widths=(16, 32, 64, 96),
+                    feature_widths=(16, 32, 64, 96), cost_width=64, context_width=32)
+        base.update(kw)
+        return cls(**base)
+
+    @classmethod
+    def preset(cls, name: str, **kw) -> "D3LVOConfig":
+        """default (the realtime network at 1216x352) | small (608x176, the bundled model's) | paper."""
+        makers = {"default": cls, "small": cls.small, "paper": cls.paper}
+        if name not in makers:
+            raise ValueError(f"preset must be one of {', '.join(makers)}, not {name!r}")
+        return makers[name](**kw)
+
+    @classmethod
     def small(cls, **kw) -> "D3LVOConfig":
         """The default network at half resolution (608x176), what the bundled model is trained at
         (2 CPU cores train it ~4x faster), with the h/4 flow level added: its finest flow grid is

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import nn
 import torch.nn.functional as F
@@ -60,3 +62,29 @@ def inverse_depth(depth: torch.Tensor, min_depth: float) -> torch.Tensor:
     """min_depth / depth in (0, 1]; holes (depth <= 0) become 0, i.e. 'infinitely far / unknown'."""
     valid = depth > 0
     return torch.where(valid, min_depth / depth.clamp(min=min_depth), torch.zeros_like(depth))
+
+
+def _to_fp32(x):
+    if isinstance(x, torch.Tensor):
+        return x.float() if x.is_floating_point() else x
+    if isinstance(x, dict):
+        return {k: _to_fp32(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_to_fp32(v) for v in x)
+    return x
+
+
+def full_precision(fn):
+    """Run `fn` in float32 even under mixed-precision autocast: the pose solvers' normal equations
+    (6x6 sums over thousands of points, steps of a millimetre) lose the pose in bf16 or fp16."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        kinds = [d for d in ("cuda", "cpu") if torch.is_autocast_enabled(d)]
+        if not kinds:
+            return fn(*args, **kwargs)
+        with torch.autocast(kinds[0], enabled=False):
+            return fn(*_to_fp32(args), **_to_fp32(kwargs))
+
+    return wrapper
+

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from . import gauss_newton as gn
+from .layers import full_precision
 
 MAD_TO_SIGMA = 1.4826
 HUBER_K = 1.345
@@ -169,6 +170,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     return R, t
 
 
+@full_precision
 def solve(image1: torch.Tensor, image2: torch.Tensor, points: torch.Tensor, weight: torch.Tensor,
           K: torch.Tensor, init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None):
     """image1, image2: (B,1,H,W) grey [0,1] of frames t-1 and t at the camera's resolution;

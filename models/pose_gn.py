@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from . import gauss_newton as gn
 from .config import D3LVOConfig
-from .layers import conv
+from .layers import conv, full_precision
 
 
 class Confidence(nn.Module):
@@ -87,6 +87,7 @@ class GaussNewtonPose(nn.Module):
             M = gn.update(M, gn.damped_step(H, g, self.cfg.gn_damping))
         return M
 
+    @full_precision
     def forward(self, hidden: dict, flows: dict, feats1: dict, feats2: dict, grey1: dict, grey2: dict,
                 depths1: dict, K: torch.Tensor, init: torch.Tensor):
         """Per-level dicts keyed by level; K (B,4) fx, fy, cx, cy at the input; init (B,4,4) the

@@ -38,7 +38,8 @@ def stage_stats(cfg: D3LVOConfig) -> dict[str, dict[str, float]]:
 
 
 if __name__ == "__main__":
-    for name, cfg in (("default 1216x352", D3LVOConfig()), ("small 608x176", D3LVOConfig.small())):
+    for name, cfg in (("default 1216x352", D3LVOConfig()), ("small 608x176", D3LVOConfig.small()),
+                      ("paper 1216x352", D3LVOConfig.paper())):
         print(name)
         for stage, v in stage_stats(cfg).items():
             print(f"  {stage:10s} {v['params'] / 1e6:6.3f} M params  {v['gflops']:7.2f} GFLOPs")

@@ -52,12 +52,28 @@ class TrainConfig:
     init: str | None = None
     num_workers: int = 0
     device: str = "auto"
+    # fp32 | bf16 (autocast on CPU and GPU) | fp16 (GPU only, with a gradient scaler); the pose
+    # solvers and the losses stay in fp32 either way
+    precision: str = "fp32"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
 
 
 # the point solver's inputs in a sample (d3lvo_deploy.points.solver_feeds)
 SOLVER_FEEDS = ("image1", "image2", "points1", "point_mask1", "image_intrinsics")
+
+
+def fp32_outputs(out: dict) -> dict:
+    """The network's outputs in float32 for the losses (bf16 would round the rotation error, ~1e-5,
+    to nothing)."""
+    def f(x):
+        if isinstance(x, torch.Tensor):
+            return x.float() if x.is_floating_point() else x
+        if isinstance(x, (list, tuple)):
+            return [f(v) for v in x]
+        return x
+
+    return {k: f(v) for k, v in out.items()}
 
 
 def lr_factor(step: int, warmup: int, total: int) -> float:
@@ -287,6 +303,12 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     elif tc.init and load_matching(model, tc.init) == 0:
         raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to start from")
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
+    amp_dtype = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}.get(tc.precision, "bad")
+    if amp_dtype == "bad":
+        raise ValueError(f"precision must be fp32, bf16 or fp16, not {tc.precision!r}")
+    if tc.precision == "fp16" and device.type != "cuda":
+        raise ValueError("fp16 training needs a CUDA GPU (its gradient scaler); use bf16 on the CPU")
+    scaler = torch.amp.GradScaler(device.type, enabled=tc.precision == "fp16")
     solver_loss = tc.loss.solver_pose_weight > 0
     if solver_loss and not cfg.point_solver:
         raise ValueError("a pose loss through the solver needs the point head (pose_head='points')")
@@ -325,8 +347,10 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                     break
                 ddp_model.train()
                 solver = {k: b[k].to(device) for k in SOLVER_FEEDS} if solver_loss else None
-                out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device), b["depth2"].to(device),
-                                b["K"].to(device), b["init"].to(device), solver)
+                with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
+                    out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device),
+                                    b["depth2"].to(device), b["K"].to(device), b["init"].to(device), solver)
+                out = fp32_outputs(out)
                 if "poses" in out:
                     pose_loss, parts = criterion(out["poses"], out["pose"], b["pose"].to(device))
                     if solver_loss:
@@ -340,7 +364,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss became {float(loss)} at step {step}")
                 opt.zero_grad(set_to_none=True)
-                loss.backward()
+                scaler.scale(loss).backward()
+                scaler.unscale_(opt)  # clipping sees the true gradients
                 if distributed:
                     # DDP averages the model's gradients only; s_t, s_q sit outside it. Averaged here
                     # too, every rank sees the same gradients, so clipping scales them alike and the
@@ -350,7 +375,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                             dist.all_reduce(q.grad)
                             q.grad /= world
                 torch.nn.utils.clip_grad_norm_(params, tc.grad_clip)
-                opt.step()
+                scaler.step(opt)  # skips the step where fp16 gradients overflowed
+                scaler.update()
                 sched.step()
                 step += 1
                 record = {"step": step, "loss": float(loss.detach()), "pose_loss": float(pose_loss.detach()),

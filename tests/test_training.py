@@ -17,6 +17,7 @@ from models.augment import flip_pose, roll_pose
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.config import D3LVOConfig
 from models.d3lvo import D3LVO
+from models.train import TrainConfig, train
 
 K = np.array([[400.0, 0, 127.5], [0, 400.0, 40.0], [0, 0, 1]])
 W, H = 256, 80
@@ -295,3 +296,101 @@ def test_balance_terms_start_at_the_no_motion_errors(small_synth):
     assert abs(loss.s_q.item() - float(torch.log(q_err))) < 1e-3
     # at those values each term of eq. 11 contributes error * exp(-s) = 1 for the identity predictor
     assert abs(float(t_err * torch.exp(-loss.s_t.detach().double())) - 1.0) < 1e-4
+
+
+def test_bf16_training_is_finite_and_learns(small_synth, tmp_path):
+    """bf16 autocast on the CPU: every loss finite, and fitting one pair brings the loss below its
+    start; the solver ran in fp32 (its poses are float32)."""
+    from models.data import AugmentConfig
+
+    cfg = D3LVOConfig.small(height=64, width=224)
+    still = AugmentConfig(flip=0.0, brightness=0.0, rotation_deg=0.0, cold_start=0.0, held_out_returns=0.0)
+    tc = TrainConfig(data=[str(small_synth)], out=str(tmp_path / "b.pt"), steps=12, batch_size=2, lr=2e-3, warmup=1,
+                     precision="bf16", augment=still, ckpt_every=100)
+    train(cfg, tc)
+    losses = [h["loss"] for h in torch.load(tmp_path / "b.pt", weights_only=False)["history"]]
+    assert all(np.isfinite(losses)), losses
+    assert np.mean(losses[-3:]) < losses[0], losses
+    with pytest.raises(ValueError, match="fp16 training needs a CUDA GPU"):
+        train(cfg, TrainConfig(data=[str(small_synth)], out=str(tmp_path / "c.pt"), steps=1, precision="fp16",
+                               device="cpu"))
+
+
+def test_full_precision_keeps_the_solver_in_fp32_under_autocast():
+    from models.layers import full_precision
+
+    @full_precision
+    def solver(x, d):
+        return x @ x.T, d["y"].dtype, torch.is_autocast_enabled("cpu")
+
+    x = torch.randn(3, 3)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert (x @ x.T).dtype == torch.bfloat16  # what autocast does to a matmul
+        out, ydtype, inside = solver(x.bfloat16(), {"y": torch.ones(2, dtype=torch.bfloat16)})
+    assert out.dtype == torch.float32 and ydtype == torch.float32 and not inside
+
+
+def test_train_config_file_round_trips_through_checkpoint_and_export(small_synth, tmp_path):
+    """--config FILE.toml: [model] fields and [train]/[loss]/[augment] options reach the
+    checkpoint; the OUT.toml written beside it repeats the run; export reads the checkpoint's
+    configuration; an unknown key or a bad value is one line naming it."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    runner = CliRunner()
+    f = tmp_path / "run.toml"
+    f.write_text(f"""
+[model]
+preset = "small"
+height = 64
+width = 224
+flow_levels = [3, 2]
+feature_widths = [16, 32, 32, 48]
+[train]
+data = ["{small_synth}"]
+out = "{tmp_path / 'a.pt'}"
+steps = 1
+batch_size = 1
+weight_decay = 0.0
+[loss]
+flow_weight = 0.25
+[augment]
+flip = 0.0
+""")
+    r = runner.invoke(app, ["train", "--config", str(f)])
+    assert r.exit_code == 0, r.output
+    ck = torch.load(tmp_path / "a.pt", weights_only=False)
+    cfg = D3LVOConfig.from_dict(ck["config"])
+    assert (cfg.height, cfg.width, tuple(cfg.flow_levels), tuple(cfg.feature_widths)) == (64, 224, (3, 2), (16, 32, 32, 48))
+    assert ck["train_config"]["weight_decay"] == 0.0 and ck["train_config"]["loss"]["flow_weight"] == 0.25
+    assert ck["train_config"]["augment"]["flip"] == 0.0
+    # the written configuration repeats it; the command line wins over the file
+    r = runner.invoke(app, ["train", "--config", str(tmp_path / "a.toml"), "--out", str(tmp_path / "b.pt")])
+    assert r.exit_code == 0, r.output
+    ck2 = torch.load(tmp_path / "b.pt", weights_only=False)
+    assert ck2["config"] == ck["config"] and ck2["train_config"]["loss"] == ck["train_config"]["loss"]
+    r = runner.invoke(app, ["export", "--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "onnx")])
+    assert r.exit_code == 0, r.output
+    manifest = json.loads((tmp_path / "onnx" / "manifest.json").read_text())
+    assert manifest["model_config"]["feature_widths"] == [16, 32, 32, 48]
+    for text, words in (("[model]\nwidht = 3\n", "[model] unknown key 'widht'"),
+                        ("[model]\nflow_levels = [1, 2]\n", "flow_levels must run coarse to fine"),
+                        ("[train]\nsteps = 'many'\n", "[train] steps = 'many'"),
+                        ("[optimizer]\nlr = 1\n", "unknown table [optimizer]")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        r = runner.invoke(app, ["train", "--config", str(bad)])
+        assert r.exit_code == 1 and words in r.output and str(bad) in r.output, (text, r.output)
+        assert len(r.output.strip().splitlines()) == 1, r.output
+
+
+def test_paper_preset_is_the_papers_network():
+    """Flow at all four pyramid levels h/16..h/2 with the MLP pose head (256, 128, 64) at 1216x352."""
+    cfg = D3LVOConfig.preset("paper")
+    assert (cfg.height, cfg.width, tuple(cfg.flow_levels), cfg.pose_head) == (352, 1216, (3, 2, 1, 0), "mlp")
+    assert tuple(cfg.pose_hidden) == (256, 128, 64) and tuple(cfg.flow_hidden) == (128, 64) and cfg.search_range == 4
+    with pytest.raises(ValueError, match="preset must be one of default, small, paper"):
+        D3LVOConfig.preset("huge")

@@ -1,0 +1,109 @@
+"""`d3lvo train --config FILE.toml`: every model, schedule, loss and augmentation option in one
+file, checked key by key; and the resolved file written beside each checkpoint, so that a run
+is repeated with `--config runs/x.toml`.
+
+    [model]            # preset (default | small | paper), then any D3LVOConfig field
+    preset = "paper"
+    flow_levels = [3, 2, 1, 0]
+    [train]            # TrainConfig: data, val, out, steps, batch_size, lr, precision, ...
+    data = ["kitti/sequences/00", "kitti/sequences/01"]
+    [loss]             # LossConfig: alphas, alpha_final, motion_weight, solver_pose_weight, ...
+    [augment]          # AugmentConfig: flip, brightness, rotation_deg, cold_start, ...
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import MISSING, asdict, fields
+from pathlib import Path
+
+from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.results import to_toml
+
+from .config import D3LVOConfig
+from .data import AugmentConfig
+from .loss import LossConfig
+
+TABLES = ("model", "train", "loss", "augment")
+
+
+def _defaults(cls) -> dict:
+    out = {}
+    for f in fields(cls):
+        if f.default is not MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not MISSING:  # type: ignore[misc]
+            out[f.name] = f.default_factory()  # type: ignore[misc]
+    return out
+
+
+def _check_type(path: Path, table: str, key: str, value, default) -> object:
+    """A value of the default's kind (ints pass for floats; lists for tuples), else one error."""
+    if default is None or value is None:
+        return value
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif isinstance(default, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif isinstance(default, (tuple, list)):
+        ok = isinstance(value, list)
+        value = tuple(value) if ok and isinstance(default, tuple) else value
+    else:
+        ok = isinstance(value, type(default))
+    if not ok:
+        raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be like {default!r}")
+    return value
+
+
+def read_train_config(path: str | Path) -> dict[str, dict]:
+    """{table: {key: value}} with every key known and of the right kind; [model] values are also
+    checked by building the model config."""
+    from .train import TrainConfig
+
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, "training config not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+    unknown = sorted(set(data) - set(TABLES))
+    if unknown:
+        raise D3LVOInputError(path, f"unknown table [{unknown[0]}] (tables: {', '.join(TABLES)})")
+    kinds = {"model": {"preset": "default", **_defaults(D3LVOConfig)},
+             "train": {k: v for k, v in _defaults(TrainConfig).items() if k not in ("augment", "loss")}
+             | {"data": [], "out": ""},
+             "loss": _defaults(LossConfig), "augment": _defaults(AugmentConfig)}
+    out: dict[str, dict] = {}
+    for table in TABLES:
+        values = data.get(table, {})
+        if not isinstance(values, dict):
+            raise D3LVOInputError(path, f"[{table}] must be a table")
+        for key, value in values.items():
+            if key not in kinds[table]:
+                raise D3LVOInputError(path, f"[{table}] unknown key {key!r}")
+            values[key] = _check_type(path, table, key, value, kinds[table][key])
+        out[table] = dict(values)
+    model_config(path, out["model"])  # bad values: one error now, not at the first step
+    return out
+
+
+def model_config(path: Path | None, table: dict, **cli) -> D3LVOConfig:
+    """The [model] table (preset + fields), with `cli` values on top."""
+    values = {**table, **cli}
+    preset = values.pop("preset", "default")
+    try:
+        return D3LVOConfig.preset(preset, **values)
+    except (TypeError, ValueError) as e:
+        raise D3LVOInputError(path, f"[model] {e}") from None
+
+
+def write_train_config(path: Path, cfg: D3LVOConfig, tc) -> Path:
+    """The resolved configuration of a training run, in the file format `--config` reads."""
+    train = {k: v for k, v in asdict(tc).items() if k not in ("augment", "loss")}
+    text = to_toml({"model": cfg.to_dict(), "train": train, "loss": asdict(tc.loss), "augment": asdict(tc.augment)})
+    path.write_text("# d3lvo train --config THIS_FILE repeats this training (--resume to continue it)\n" + text)
+    return path
