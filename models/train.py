@@ -5,6 +5,7 @@ CPU, nccl on GPU): rank 0 logs, validates and saves.
 
 from __future__ import annotations
 
+import datetime
 import math
 import os
 import time
@@ -55,6 +56,7 @@ class TrainConfig:
     # fp32 | bf16 (autocast on CPU and GPU) | fp16 (GPU only, with a gradient scaler); the pose
     # solvers and the losses stay in fp32 either way
     precision: str = "fp32"
+    dist_timeout_min: float = 180.0  # how long ranks wait for each other (rank 0's validation)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
 
@@ -269,7 +271,10 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     rank, world, distributed = _dist_info()
     device = _device(tc.device, rank)
     if distributed and not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        # rank 0 validates while the others wait at the next all-reduce: the full 09-10 validation
+        # can take longer than NCCL's default timeout, so the group waits as long as one may take
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo",
+                                timeout=datetime.timedelta(minutes=tc.dist_timeout_min))
     torch.manual_seed(tc.seed + rank)
 
     model = D3LVO(cfg).to(device)
@@ -326,6 +331,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     # its own generator: each new iterator draws a seed, which must not come from the global RNG
     # that dropout uses (a resumed run creates one iterator more than an uninterrupted one)
     loader = DataLoader(data, batch_size=batch, sampler=sampler, num_workers=tc.num_workers, drop_last=True,
+                        pin_memory=device.type == "cuda",
                         generator=torch.Generator().manual_seed(tc.seed))
 
     record: dict = {}
