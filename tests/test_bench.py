@@ -13,13 +13,31 @@ from d3lvo_deploy.sequence import KittiSequence
 runner = CliRunner()
 
 
-def test_total_is_the_sum_of_stages(small_model, small_synth):
+def test_total_is_the_frame_time_measured_outside(small_model, small_synth, monkeypatch):
+    """A frame's total against a clock the test holds around each `Odometry.step` call: the stages
+    lie inside the call, so the total never exceeds it, and they cover nearly all of it (a stage
+    left out of the total, or timed twice, breaks one side)."""
+    import time
+
+    from d3lvo_deploy.odometry import Odometry
+
+    walls = []
+    step = Odometry.step
+
+    def timed_step(self, image, points):
+        t0 = time.perf_counter()
+        pose = step(self, image, points)
+        walls.append((time.perf_counter() - t0) * 1000)
+        return pose
+
+    monkeypatch.setattr(Odometry, "step", timed_step)
     _, onnx_dir = small_model
     t = bench_onnx(onnx_dir, KittiSequence.open(small_synth), SessionConfig(threads=1), runs=4, warmup=1)
     s = t.samples
-    assert len(s["total"]) == 4
-    for i in range(4):
-        assert s["total"][i] == sum(s[k][i] for k in ("project", "completion", "encoder", "flowpose"))
+    assert len(s["total"]) == 4 and len(walls) == 5
+    for total, wall in zip(s["total"], walls[1:]):
+        assert total <= wall + 1e-3, (total, wall)
+    assert sum(s["total"]) >= 0.8 * sum(walls[1:]), (s["total"], walls)
     summ = t.summary()
     for k, v in summ.items():
         assert v["min"] <= v["median"] <= v["p90"] <= v["max"]
