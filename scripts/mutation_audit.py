@@ -126,6 +126,28 @@ MUTATIONS = [
              'camera.update(solver_feeds(self._prev["solver_frame"], enc["solver_frame"]',
              'camera.update(solver_feeds(enc["solver_frame"], self._prev["solver_frame"]',
              ("tests/test_point_solver.py",)),
+    Mutation("bags: an image paired with the nearest scan however far apart in time",
+             "d3lvo_deploy/datasets/rosbag.py", "if abs(cloud_t[j] - t) <= max_dt and j not in used:",
+             "if j not in used:", ("tests/test_formats.py::test_pairing_by_nearest_stamp_by_hand",
+                                   "tests/test_formats.py::test_bad_bags_fail_in_one_line_and_write_nothing")),
+    Mutation("bags: a /tf_static transform taken the wrong way round (child to parent)",
+             "d3lvo_deploy/datasets/rosbag.py", "edges.setdefault(p, []).append((c, T))",
+             "edges.setdefault(p, []).append((c, se3_inv(T)))",
+             ("tests/test_formats.py::test_recording_formats_give_the_folder_run_poses",)),
+    Mutation("KITTI raw: OXTS angles composed as Rx Ry Rz instead of the devkit's Rz Ry Rx",
+             "d3lvo_deploy/datasets/kitti_raw.py", "T = make_se3(Rz @ Ry @ Rx, t)", "T = make_se3(Rx @ Ry @ Rz, t)",
+             ("tests/test_formats.py::test_kitti_raw_oxts_ground_truth_by_hand",)),
+    Mutation("run --config: the file's values override options given on the command line", "cli/run_cmd.py",
+             'if getattr(ctx.get_parameter_source(k), "name", "DEFAULT") in ("DEFAULT", "DEFAULT_MAP"):',
+             'if True:', ("tests/test_formats.py::test_results_folder_holds_the_run_and_its_config_repeats_it",)),
+    Mutation("pipeline: the reader thread prepares the frame after next", "d3lvo_deploy/pipeline.py",
+             "ahead = pool.submit(load, i + 1) if pool is not None and j + 1 < n and odo.pre is not None else None",
+             "ahead = pool.submit(load, min(i + 2, rc.start + n - 1)) if pool is not None and j + 1 < n and "
+             "odo.pre is not None else None",
+             ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
+    Mutation("auto: OpenVINO for a short run although it never compiled the model here", "d3lvo_deploy/backends.py",
+             "if frames is None or frames >= AUTO_MIN_FRAMES:", "if True:",
+             ("tests/test_backends.py::test_auto_keeps_a_short_run_off_an_uncompiled_openvino",)),
 ]
 
 

@@ -177,6 +177,10 @@ def test_kitti_raw_oxts_ground_truth_by_hand(tmp_path):
     np.testing.assert_allclose(T[1, :3, 3], [1e-5 * deg, 0, 0], atol=1e-6)
     np.testing.assert_allclose(T[2, :3, 3], [0, 1e-5 * deg, 0], atol=1e-6)
     assert np.allclose(T[:, :3, :3], np.eye(3))
+    # roll then yaw, 90 deg each: the devkit's R = Rz(yaw) Ry(pitch) Rx(roll), by hand
+    rec = np.zeros((2, 30))
+    rec[1, 3], rec[1, 5] = math.pi / 2, math.pi / 2
+    np.testing.assert_allclose(oxts_poses(rec)[1, :3, :3], [[0, 0, 1], [1, 0, 0], [0, 1, 0]], atol=1e-12)
 
     seq = KittiSequence.open(TINY)
     drive = write_kitti_raw(seq, tmp_path / "2011_09_26")
