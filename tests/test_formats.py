@@ -228,6 +228,10 @@ def test_results_folder_holds_the_run_and_its_config_repeats_it(tmp_path, monkey
     second = Path("results/latest").resolve()
     assert second != first
     assert (second / "poses.txt").read_bytes() == (first / "poses.txt").read_bytes()
+    # an option given on the command line wins over the file's (start = 0 there)
+    r = runner.invoke(app, ["run", "--config", str(first / "config.toml"), "--start", "1"])
+    assert r.exit_code == 0, r.output
+    assert len(read_poses(Path("results/latest/poses.txt"))) == 2
 
     bad = tmp_path / "bad.toml"
     bad.write_text("[run]\nbackend = 'onnxruntime'\nspeed = 3\n")
