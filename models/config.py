@@ -11,7 +11,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate")
+               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -84,6 +84,10 @@ class D3LVOConfig:
     # above 0: a point's weight is 1 where its confidence exceeds this, else 0 (what the network
     # thinks likely moves is dropped, the rest is tracked exactly as the classical tracker does)
     pt_gate: float = 0.0
+    # a static prior: a point weighs fully once its confidence reaches this, and conf / pt_conf_full
+    # below it; the solver then tracks the scene exactly as the classical tracker does wherever
+    # the network is not fairly sure something moves. 1: the weight is the confidence itself
+    pt_conf_full: float = 1.0
     gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
     gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
     gn_features: int = 8  # learned feature channels beside the grey image in the residual
@@ -137,6 +141,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_conf_power must be above 0, not {self.pt_conf_power!r}")
         if not (isinstance(self.pt_gate, (int, float)) and 0 <= self.pt_gate < 1):
             raise ValueError(f"pt_gate must be in [0, 1), not {self.pt_gate!r}")
+        if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):
+            raise ValueError(f"pt_conf_full must be in (0, 1], not {self.pt_conf_full!r}")
         if self.correlation not in ("tiled", "slices", "stacked"):
             raise ValueError(f"correlation must be tiled, slices or stacked, not {self.correlation!r}")
 

@@ -107,6 +107,8 @@ class PointPose(nn.Module):
         conf = self.point_confidence(confidence, solver["points1"], K)
         if self.cfg.pt_gate > 0:
             conf = (conf > self.cfg.pt_gate).to(conf.dtype)
+        if self.cfg.pt_conf_full < 1:
+            conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
         levels = solve(solver["image1"], solver["image2"], solver["points1"], weight, solver["image_intrinsics"],
                        init, self.settings)

@@ -5,7 +5,8 @@
 # head on drives with traffic; then the evaluation beside the no-learning direct tracker.
 # Data: synthetic sequences from `d3lvo synth`, motion replayed from the real KITTI GT 00-08
 # (training) and 09-10 (held-out, other seeds). On 2 CPU cores: data ~16 min, then the trainings
-# below side by side, ~100 min in all; sequences already in $OUT/data are reused.
+# below side by side, ~100 min in all, then ~40 min for the bundled point head's three trainings;
+# sequences already in $OUT/data are reused.
 # A run cut short resumes: RESUME=1 continues the trainings from their last checkpoints.
 #   GT=path/to/kitti_gt_poses OUT=runs/default bash scripts/train_default.sh
 set -euo pipefail
@@ -90,9 +91,27 @@ OMP_NUM_THREADS=1 "$D3LVO" train "${points[@]}" --val "$OUT/data/val_traffic" --
   --init "$INIT" --preset small --pose-head points --batch-size 4 --lr 5e-4 --steps 2000 --val-every 400 \
   --ckpt-every 50 --seed 0 $(resume "$OUT/points.pt")
 
+# Then the pose loss through the solver (--solver-loss 1: eq. 11 on the solver's own poses,
+# backpropagated into the confidence; flips and rotations off), in two parts: 600 steps on the same
+# ten drives, then 400 more with four more static drives (two with the synthesizer's own motion),
+# one thread, ~1.5 s per step. checkpoints/points_solver_step400.pt is the second part's full state.
+plain() { [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" --size "$SIZE"; }
+plain st_d1 --frames 120 --seed 520
+drive st_d2 --frames 120 --seed 521
+plain st_02 --frames 120 --seed 522 --motion-from "$GT/02.txt" --motion-start 900
+drive st_08 --frames 120 --seed 523 --motion-from "$GT/08.txt" --motion-start 1500
+OMP_NUM_THREADS=1 "$D3LVO" train "${points[@]}" --val "$OUT/data/val_traffic" --out "$OUT/solver.pt" \
+  --init "$OUT/points.pt" --preset small --pose-head points --batch-size 4 --lr 2e-4 --steps 600 --val-every 200 \
+  --ckpt-every 50 --seed 0 --solver-loss 1 $(resume "$OUT/solver.pt")
+more=("${points[@]}")
+for s in st_d1 st_d2 st_02 st_08; do more+=(--data "$OUT/data/$s"); done
+OMP_NUM_THREADS=1 "$D3LVO" train "${more[@]}" --val "$OUT/data/val_traffic" --out "$OUT/solver2.pt" \
+  --init "$OUT/solver.pt" --preset small --pose-head points --batch-size 4 --lr 1.5e-4 --steps 400 --val-every 200 \
+  --ckpt-every 50 --seed 1 --solver-loss 1 $(resume "$OUT/solver2.pt")
+
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
 # measured for the direct tracker (docs/evaluation.md), and export from exactly that file
-.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/points.pt', \
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/solver2.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
