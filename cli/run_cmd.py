@@ -113,8 +113,9 @@ def run_command(
                                      "the CPU's AVX512_BF16/AMX paths; see docs/performance.md)."),
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by their timestamps, like a live sensor."),
-    pipeline: bool = typer.Option(True, "--pipeline/--no-pipeline", help="Read and project frame t+1 on a second "
-                                  "thread while the network works on frame t (same poses; more frames/s)."),
+    pipeline: bool = typer.Option(False, "--pipeline/--no-pipeline", help="Read and project frame t+1 on a second "
+                                  "thread while the network works on frame t (same poses; pays with more than 2 "
+                                  "cores: `d3lvo bench` prints both rates)."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),

@@ -10,6 +10,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -146,9 +147,14 @@ class Odometry:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
         return self.step_prepared(self.prepare(image, points))
 
-    def step_prepared(self, frame: "PreparedFrame") -> np.ndarray:
-        """`step` on a frame `prepare` has already done (by a pipeline's reader thread)."""
+    def step_prepared(self, frame: "PreparedFrame", on_encoded: Callable[[], None] | None = None) -> np.ndarray:
+        """`step` on a frame `prepare` has already done (by a pipeline's reader thread).
+        `on_encoded` runs between the encoder and the flow+pose stage: a pipeline starts preparing
+        the next frame there, beside the single-threaded solver, rather than beside completion
+        and encoder, which use every core."""
         enc = self.encode_prepared(frame)
+        if on_encoded is not None:
+            on_encoded()
         t0 = time.perf_counter()
         if self._prev is not None:
             camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None

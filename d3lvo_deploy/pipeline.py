@@ -74,8 +74,10 @@ class RunConfig:
     viz_every: int = 10  # also the frames whose images go into the Rerun recording
     rerun_path: Path | None = None  # write a Rerun recording (.rrd) of the run
     # read and prepare frame t+1 (image, scan, projection, IP-Basic, solver points) on a second
-    # thread while the network works on frame t; the poses are the same either way
-    pipeline: bool = True
+    # thread while the network works on frame t; the poses are the same either way. Off by
+    # default: on 2 cores it measured no faster (the network's stages already keep both busy) and
+    # raised each frame's latency by a third (docs/performance.md); with more cores it can pay
+    pipeline: bool = False
 
 
 def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
@@ -211,12 +213,20 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     if wait > 0:
                         time.sleep(wait)
                 image, points, prepared, read_ms = ahead.result() if ahead is not None else load(i)
-                ahead = pool.submit(load, i + 1) if pool is not None and j + 1 < n and odo.pre is not None else None
+                ahead = None
                 if pictures and hasattr(odo, "keep_outputs"):
                     odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
-                pose = odo.step_prepared(prepared) if prepared is not None else odo.step(image, points)
-                if pool is not None and ahead is None and j + 1 < n:  # the first frame fixed the view
-                    ahead = pool.submit(load, i + 1)
+
+                def read_next(i=i, j=j):
+                    nonlocal ahead
+                    if pool is not None and j + 1 < n:
+                        ahead = pool.submit(load, i + 1)
+
+                if prepared is not None:
+                    pose = odo.step_prepared(prepared, on_encoded=read_next)
+                else:
+                    pose = odo.step(image, points)
+                    read_next()  # the first frame has fixed the view: from here on, prepared ahead
                 view = None
                 if getattr(odo, "keep_outputs", False):  # a chosen frame: what the network saw, once for both
                     view = network_view(odo.last, odo.model.dense_depth_m, "completion" in odo.model.sessions)

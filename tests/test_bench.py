@@ -165,8 +165,10 @@ def test_pipelined_fps_steps_every_frame_in_order_once():
             self.prepared.append(image)
             return image
 
-        def step_prepared(self, frame):
+        def step_prepared(self, frame, on_encoded=None):
             self.stepped.append(frame)
+            if on_encoded is not None:
+                on_encoded()
 
     rec = Recorder()
     frames = [(k, None) for k in range(4)]
