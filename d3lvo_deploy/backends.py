@@ -88,16 +88,18 @@ class SessionConfig:
             raise D3LVOInputError(None, "--ov-precision applies to --backend openvino only")
 
 
-# "auto" on a short run: OpenVINO's first compile of the bundled model takes ~8 s on 2 cores
-# (`d3lvo run` on the 20 real frames: 12.7 s wall the first time, 4.9 s once cached, onnxruntime
-# 4.7 s) and saves ~16 ms per frame after (59.4 vs 75.8 ms, `d3lvo bench`), so it pays back after
-# ~500 frames; below this many, auto keeps onnxruntime unless the compiled graphs are cached
+# "auto" on a short run. Measured with `d3lvo run` on the 20 real frames, bundled model, AMD EPYC
+# (AVX-512), 2 cores: onnxruntime's first pose after 2.2 s (0.7 s once its optimised graphs are
+# cached); OpenVINO's after 9.1 s the first time (compiling) and 2.5 s once cached; per frame
+# OpenVINO then saves ~17 ms (58 vs 75 ms, `d3lvo bench`). So OpenVINO pays back after ~110 frames
+# when cached and ~500 when not; auto takes it from these lengths on, onnxruntime below
+AUTO_MIN_FRAMES_CACHED = 200
 AUTO_MIN_FRAMES = 1000
 
 
 def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) -> tuple[SessionConfig, str]:
     """The engine a run takes, and why in words (printed by `d3lvo run`). `frames`: the run's
-    length (None: a stream of unknown length)."""
+    length (None: a stream of unknown length, where the faster engine wins in the end)."""
     if sc.backend != AUTO:
         return sc, "asked for"
     if sc.provider != "cpu" or sc.profile_dir is not None:
@@ -107,13 +109,17 @@ def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) 
     ov = replace(sc, backend="openvino")
     if sc.ov_precision != "f32":
         return ov, f"auto: --ov-precision {sc.ov_precision} is OpenVINO's"
-    if manifest is not None and openvino_compiled(ov, manifest):
-        return ov, "auto: OpenVINO, the faster engine here, with this model's compiled graphs cached"
-    if frames is None or frames >= AUTO_MIN_FRAMES:
-        return ov, f"auto: OpenVINO, the faster engine here; its first compile (~10 s) pays back over a long run"
+    cached = manifest is not None and openvino_compiled(ov, manifest)
+    if frames is None:
+        return ov, "auto: OpenVINO, the faster engine here, for a stream"
+    need = AUTO_MIN_FRAMES_CACHED if cached else AUTO_MIN_FRAMES
+    if frames >= need:
+        return ov, (f"auto: OpenVINO, the faster engine here; over {frames} frames it repays its "
+                    + ("load from the cache" if cached else "first compile (~10 s)"))
     return replace(sc, backend="onnxruntime"), (
-        f"auto: {frames} frames are too few to pay back OpenVINO's first compile of this model (~10 s); "
-        "`--backend openvino` once caches it, and auto takes it from then on")
+        f"auto: {frames} frames are too few to repay OpenVINO's "
+        + ("load (~2 s more than onnxruntime's)" if cached else "first compile of this model (~10 s)")
+        + f"; it takes OpenVINO from {need} frames on")
 
 
 def _marker(sc: SessionConfig, stage: str, sha256: str) -> str:
