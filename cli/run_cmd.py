@@ -148,13 +148,11 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
 
 def _check_model(config: Path, run: dict, opts: dict) -> None:
     """A repeat on another model gives other poses: say so (the run itself goes ahead)."""
-    import tomllib
-
     from d3lvo_deploy.manifest import sha256_file
-    from d3lvo_deploy.results import CONFIG
+    from d3lvo_deploy.results import CONFIG, read_toml
 
     path = config / CONFIG if config.is_dir() else config
-    recorded = tomllib.loads(path.read_text()).get("model", {}).get("manifest_sha256")
+    recorded = read_toml(path).get("model", {}).get("manifest_sha256")
     onnx = opts["onnx"] if "onnx" not in run else Path(run["onnx"])
     manifest = resolve_model_dir(onnx) / "manifest.json"
     if recorded and manifest.is_file() and sha256_file(manifest) != recorded:

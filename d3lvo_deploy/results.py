@@ -19,13 +19,17 @@ import json
 import math
 import os
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .errors import D3LVOInputError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser, as a package
+    import tomli as tomllib
 from .poses import read_poses, write_poses
 
 POSES, POSES_TUM, CONFIG, METRICS, LATENCY, PLOT = (
@@ -77,17 +81,23 @@ def to_toml(tables: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def read_toml(path: str | Path, what: str = "config file") -> dict:
+    """A TOML file as a dict; a missing or malformed file is one error naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise D3LVOInputError(path, f"{what} not found")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+
+
 def read_config(path: str | Path) -> dict:
     """The [run] table of a results folder's config.toml (or of a file written by hand)."""
     path = Path(path)
     if path.is_dir():
         path = path / CONFIG
-    if not path.is_file():
-        raise D3LVOInputError(path, "config file not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+    data = read_toml(path)
     run = data.get("run")
     if not isinstance(run, dict):
         raise D3LVOInputError(path, "has no [run] table (d3lvo run writes one into each results folder)")

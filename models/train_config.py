@@ -13,12 +13,11 @@ is repeated with `--config runs/x.toml`.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import MISSING, asdict, fields
 from pathlib import Path
 
 from d3lvo_deploy.errors import D3LVOInputError
-from d3lvo_deploy.results import to_toml
+from d3lvo_deploy.results import read_toml, to_toml
 
 from .config import D3LVOConfig
 from .data import AugmentConfig
@@ -64,12 +63,7 @@ def read_train_config(path: str | Path) -> dict[str, dict]:
     from .train import TrainConfig
 
     path = Path(path)
-    if not path.is_file():
-        raise D3LVOInputError(path, "training config not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+    data = read_toml(path, "training config")
     unknown = sorted(set(data) - set(TABLES))
     if unknown:
         raise D3LVOInputError(path, f"unknown table [{unknown[0]}] (tables: {', '.join(TABLES)})")

@@ -86,12 +86,16 @@ def write_ros2_bag(seq, out: Path, storage: str = "mcap", frames=None, **kw) -> 
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     msgs = _messages(ts, False, seq, range(len(seq)) if frames is None else frames, **_defaults(kw))
     with Writer(out, version=9, storage_plugin=plugin) as w:
-        conns = {}
-        for topic, mtype, msg, t in msgs:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, mtype, typestore=ts)
-            w.write(conns[topic], int(t * 1e9), ts.serialize_cdr(msg, mtype))
+        _write(w, ts, msgs, ts.serialize_cdr)
     return out
+
+
+def _write(writer, ts, msgs, serialize) -> None:
+    conns = {}
+    for topic, mtype, msg, t in msgs:
+        if topic not in conns:
+            conns[topic] = writer.add_connection(topic, mtype, typestore=ts)
+        writer.write(conns[topic], int(t * 1e9), serialize(msg, mtype))
 
 
 def write_ros1_bag(seq, out: Path, frames=None, **kw) -> Path:
@@ -105,11 +109,7 @@ def write_ros1_bag(seq, out: Path, frames=None, **kw) -> Path:
         ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
     msgs = _messages(ts, True, seq, range(len(seq)) if frames is None else frames, **_defaults(kw))
     with Writer(out) as w:
-        conns = {}
-        for topic, mtype, msg, t in msgs:
-            if topic not in conns:
-                conns[topic] = w.add_connection(topic, mtype, typestore=ts)
-            w.write(conns[topic], int(t * 1e9), ts.serialize_ros1(msg, mtype))
+        _write(w, ts, msgs, ts.serialize_ros1)
     return out
 
 
