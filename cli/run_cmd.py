@@ -139,9 +139,12 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     unknown = sorted(set(table) - set(RUN_KEYS))
     if unknown:
         raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
+    given = lambda name: getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in (  # noqa: E731
+        "DEFAULT", "DEFAULT_MAP")  # by name: typer may bring its own copy of click's ParameterSource
     for k, v in table.items():
-        # by name: typer may bring its own copy of click's ParameterSource
-        if getattr(ctx.get_parameter_source(k), "name", "DEFAULT") in ("DEFAULT", "DEFAULT_MAP"):
+        if k == "fmt" and (given("path") or given("seq_dir")):
+            continue  # another recording: its own format, guessed again
+        if not given(k):
             opts[k] = Path(v) if k in ("path", "calib", "gt", "onnx") else v
     return opts
 
@@ -243,8 +246,10 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
     engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"
     if folder is not None:
-        record = dict(path=seq.root.resolve(), fmt=_format_of(seq), calib=calib, image_topic=image_topic,
-                      cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=gt, onnx=onnx, method=method,
+        absolute = lambda p: None if p is None else Path(p).resolve()  # noqa: E731 - repeatable from anywhere
+        record = dict(path=seq.root.resolve(), fmt=_format_of(seq), calib=absolute(calib), image_topic=image_topic,
+                      cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt),
+                      onnx=absolute(onnx), method=method,
                       start=start, end=end, provider=provider, threads=threads,
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                       optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)

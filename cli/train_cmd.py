@@ -91,11 +91,20 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     from models.train_config import read_train_config
 
     file = read_train_config(config)
+    given = lambda name: getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in (  # noqa: E731
+        "DEFAULT", "DEFAULT_MAP")
+    if given("preset"):  # another preset is another model: the file's model fields make way for it
+        file["model"] = {k: v for k, v in file["model"].items() if k in ("mode", "completion", "pose_head")}
+    if given("resume"):  # a resumed run takes its weights from the checkpoint, never from init
+        file["train"].pop("init", None)
+    if not given("out") and not given("resume") and file["train"].get("out") and Path(file["train"]["out"]).exists():
+        raise D3LVOInputError(config, f"its out {file['train']['out']} exists already: --out NEW repeats the "
+                                      f"training elsewhere, --resume {file['train']['out']} continues it")
     for (table, key), name in FILE_OPTIONS.items():
         if key not in file[table]:
             continue
         value = file[table].pop(key)
-        if getattr(ctx.get_parameter_source(name), "name", "DEFAULT") in ("DEFAULT", "DEFAULT_MAP"):
+        if not given(name):
             if key in ("data", "val"):
                 value = [Path(v) for v in value]
             elif key in ("out", "init") and value is not None:

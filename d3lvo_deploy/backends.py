@@ -198,12 +198,22 @@ class OrtSession:
                 so.optimized_model_filepath = str(tmp)
             try:
                 self.sess = ort.InferenceSession(str(path), so, providers=providers)
-            except D3LVOInputError:
-                raise
             except Exception as e:  # onnxruntime raises its own exception types
-                raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
+                if tmp is not None:  # perhaps only the cache could not be written (disk full, folder gone)
+                    so.optimized_model_filepath = ""
+                    tmp.unlink(missing_ok=True)
+                    tmp = None
+                    try:
+                        self.sess = ort.InferenceSession(str(path), so, providers=providers)
+                    except Exception:  # noqa: BLE001 - the model itself: report the first error
+                        pass
+                if self.sess is None:
+                    raise D3LVOInputError(path, f"onnxruntime cannot load it ({str(e).splitlines()[0][:200]})") from None
             if tmp is not None and tmp.is_file():
-                os.replace(tmp, cached)
+                try:
+                    os.replace(tmp, cached)
+                except OSError:
+                    tmp.unlink(missing_ok=True)
         self.inputs = [(i.name, list(i.shape)) for i in self.sess.get_inputs()]
         self.outputs = [o.name for o in self.sess.get_outputs()]
 

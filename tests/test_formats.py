@@ -107,7 +107,7 @@ def test_bag_at_an_mcap_file_and_topic_choice(tmp_path):
     ("no-cloud", "has no PointCloud2 topic; its topics: /tf_static"),
     ("no-pairs", "0 of 3 images on /camera/image_raw have a scan on /velodyne_points within 0.05 s (closest: 0.800 s)"),
     ("no-tf", "no LiDAR-camera extrinsics: the bag has no /tf_static; give them with --calib"),
-    ("no-info", "no CameraInfo topic for /camera/image_raw"),
+    ("no-info", "no CameraInfo message for /camera/image_raw"),
 ])
 def test_bad_bags_fail_in_one_line_and_write_nothing(tmp_path, monkeypatch, kind, words):
     seq = KittiSequence.open(TINY)
@@ -136,6 +136,9 @@ def test_pairing_by_nearest_stamp_by_hand():
     clouds = np.array([0.38, 0.02, 0.13, 0.29])  # unsorted; none near 0.2 within 0.05
     assert pair_stamps(images, clouds, 0.05) == [(0, 1), (1, 2), (3, 3), (4, 0)]
     assert pair_stamps(images, clouds, 0.011) == [(3, 3)]
+    # a camera twice as fast as the LiDAR: each scan keeps the image nearest to it (10 ms), not the
+    # first image near it (40 ms)
+    assert pair_stamps(np.array([0.0, 0.05, 0.10]), np.array([0.04, 0.14]), 0.05) == [(1, 0), (2, 1)]
 
 
 @pytest.mark.parametrize("ext", [".pcd", ".ply", ".npy"])

@@ -372,6 +372,9 @@ flip = 0.0
     assert r.exit_code == 0, r.output
     ck2 = torch.load(tmp_path / "b.pt", weights_only=False)
     assert ck2["config"] == ck["config"] and ck2["train_config"]["loss"] == ck["train_config"]["loss"]
+    # repeating without --out would overwrite the first run's checkpoint: refused, naming it
+    r = runner.invoke(app, ["train", "--config", str(tmp_path / "a.toml")])
+    assert r.exit_code == 1 and "exists already" in r.output and "--resume" in r.output, r.output
     r = runner.invoke(app, ["export", "--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "onnx")])
     assert r.exit_code == 0, r.output
     manifest = json.loads((tmp_path / "onnx" / "manifest.json").read_text())

@@ -129,7 +129,7 @@ def _read_oxts(folder: Path, names: list[str]) -> np.ndarray:
 class KittiRawSequence(SensorSequence):
     @classmethod
     def open(cls, drive: str | Path) -> "KittiRawSequence":
-        drive = Path(drive)
+        drive = Path(drive).resolve()  # the calib files may be in its parent, the date folder
         if not is_kitti_raw(drive):
             raise D3LVOInputError(drive, "not a KITTI raw drive (needs image_02/data/ and velodyne_points/data/)")
         img_dir, velo_dir = drive / "image_02" / "data", drive / "velodyne_points" / "data"

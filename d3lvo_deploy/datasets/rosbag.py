@@ -61,10 +61,18 @@ def cloud_to_scan(path: Path, msg) -> np.ndarray:
         raise D3LVOInputError(path, f"PointCloud2 fields {list(fields)} lack x, y, z")
     inten = next((n for n in INTENSITY_NAMES if n in fields), None)
     names = ["x", "y", "z"] + ([inten] if inten else [])
+    bad = [n for n in names if fields[n].datatype not in FIELD_TYPES]
+    if bad:
+        raise D3LVOInputError(path, f"PointCloud2 field {bad[0]} has datatype {fields[bad[0]].datatype}, not one of "
+                                    "ROS's numeric types 1-8")
     order = ">" if msg.is_bigendian else "<"
     dtype = np.dtype({"names": names, "formats": [order + FIELD_TYPES[fields[n].datatype] for n in names],
                       "offsets": [fields[n].offset for n in names], "itemsize": msg.point_step})
-    rows = np.frombuffer(np.asarray(msg.data, np.uint8).tobytes(), np.uint8).reshape(msg.height, msg.row_step)
+    data = np.asarray(msg.data, np.uint8)
+    if data.size < msg.height * msg.row_step or msg.row_step < msg.width * msg.point_step:
+        raise D3LVOInputError(path, f"a PointCloud2 of {msg.height}x{msg.width} points holds {data.size} bytes "
+                                    f"(row_step {msg.row_step}, point_step {msg.point_step}): truncated")
+    rows = data[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
     pts = np.frombuffer(rows[:, : msg.width * msg.point_step].tobytes(), dtype)
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], -1)
     return as_scan(path, xyz, pts[inten] if inten else None)
@@ -97,7 +105,9 @@ def chain(transforms: dict[tuple[str, str], np.ndarray], target: str, source: st
     return seen.get(source)
 
 
-def _pick(path: Path, conns, kinds: tuple[str, ...], wanted: str | None, what: str, option: str):
+def _pick(path: Path, conns, kinds: tuple[str, ...], wanted: str | None, what: str, option: str) -> list:
+    """Every connection of the one topic of these kinds (a restarted publisher is a second
+    connection on the same topic); [] where there is none."""
     found = [c for c in conns if c.msgtype in kinds]
     if wanted is not None:
         hit = [c for c in conns if c.topic == wanted]
@@ -105,33 +115,35 @@ def _pick(path: Path, conns, kinds: tuple[str, ...], wanted: str | None, what: s
             raise D3LVOInputError(path, f"no topic {wanted!r}; {what} topics here: {_topics(found)}")
         if hit[0].msgtype not in kinds:
             raise D3LVOInputError(path, f"{wanted} holds {hit[0].msgtype}, not {' or '.join(kinds)}")
-        return hit[0]
+        return hit
     topics = sorted({c.topic for c in found})
-    if not topics:
-        return None
     if len(topics) > 1:
         raise D3LVOInputError(path, f"several {what} topics: {_topics(found)}; choose one with {option}")
-    return next(c for c in found if c.topic == topics[0])
+    return [c for c in found if topics and c.topic == topics[0]]
 
 
 def _topics(conns) -> str:
     return ", ".join(f"{c.topic} ({c.msgtype.rsplit('/', 1)[-1]}, {c.msgcount} msgs)" for c in conns) or "none"
 
 
+def _nearest(sorted_t: np.ndarray, t: float) -> int:
+    k = int(np.searchsorted(sorted_t, t))
+    return min((j for j in (k - 1, k) if 0 <= j < len(sorted_t)), key=lambda j: abs(sorted_t[j] - t))
+
+
 def pair_stamps(image_t: np.ndarray, cloud_t: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
-    """Each image with the nearest scan in time, within max_dt; a scan serves one image at most."""
-    pairs, used = [], set()
-    if not len(cloud_t):
-        return pairs
-    order = np.argsort(cloud_t)
-    sorted_t = cloud_t[order]
+    """(image, scan) pairs that are each other's nearest in time and within max_dt: a camera
+    faster than the LiDAR keeps the image closest to each scan, not the first one near it."""
+    if not len(cloud_t) or not len(image_t):
+        return []
+    c_order, i_order = np.argsort(cloud_t), np.argsort(image_t)
+    c_sorted, i_sorted = cloud_t[c_order], image_t[i_order]
+    pairs = []
     for i, t in enumerate(image_t):
-        k = int(np.searchsorted(sorted_t, t))
-        best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_t)), key=lambda j: abs(sorted_t[j] - t))
-        j = int(order[best])
-        if abs(cloud_t[j] - t) <= max_dt and j not in used:
+        j = int(c_order[_nearest(c_sorted, t)])
+        back = int(i_order[_nearest(i_sorted, cloud_t[j])])
+        if back == i and abs(cloud_t[j] - t) <= max_dt:
             pairs.append((i, j))
-            used.add(j)
     return pairs
 
 
@@ -158,17 +170,20 @@ class BagSequence(SensorSequence):
         except Exception as e:  # noqa: BLE001 - rosbags raises a different type per bag format
             raise D3LVOInputError(path, f"cannot be read as a ROS 1 / ROS 2 bag ({e})") from None
         conns = reader.connections
-        img = _pick(path, conns, IMAGE_TYPES, options.image_topic, "image", "--image-topic")
-        cloud = _pick(path, conns, (CLOUD_TYPE,), options.cloud_topic, "PointCloud2", "--cloud-topic")
-        if img is None or cloud is None:
-            missing = "Image or CompressedImage topic" if img is None else "PointCloud2 topic"
+        imgs = _pick(path, conns, IMAGE_TYPES, options.image_topic, "image", "--image-topic")
+        clouds = _pick(path, conns, (CLOUD_TYPE,), options.cloud_topic, "PointCloud2", "--cloud-topic")
+        if not imgs or not clouds:
+            missing = "Image or CompressedImage topic" if not imgs else "PointCloud2 topic"
             raise D3LVOInputError(path, f"has no {missing}; its topics: {_topics(conns)}")
+        img, cloud = imgs[0], clouds[0]
 
         stamps: dict[str, list[tuple[int, float, str]]] = {img.topic: [], cloud.topic: []}
-        for conn, t, raw in reader.messages(connections=[img, cloud]):
+        for conn, t, raw in reader.messages(connections=imgs + clouds):
             msg = reader.deserialize(raw, conn.msgtype)
             stamps[conn.topic].append((t, stamp(msg), frame_id(msg)))
         im, cl = stamps[img.topic], stamps[cloud.topic]
+        if not im or not cl:
+            raise D3LVOInputError(path, f"{img.topic if not im else cloud.topic} holds no messages")
         im_t, cl_t = np.array([s for _, s, _ in im]), np.array([s for _, s, _ in cl])
         pairs = pair_stamps(im_t, cl_t, options.max_dt)
         if len(pairs) < 2:
@@ -182,7 +197,7 @@ class BagSequence(SensorSequence):
         seq = cls(root=path, calib=calib, frame_names=[f"{k:06d}" for k in range(len(pairs))], times=times - times[0],
                   frame_label=f"camera frame '{cam_frame}' of {img.topic} (x right, y down, z forward)",
                   options=options)
-        seq._reader, seq._conns = reader, (img, cloud)
+        seq._reader, seq._conns = reader, (imgs, clouds)
         seq._log_times = [(im[i][0], cl[j][0]) for i, j in pairs]
         seq._rectify = rectify
         return seq
@@ -191,24 +206,36 @@ class BagSequence(SensorSequence):
     def _calibration(path, reader, conns, img, options: BagOptions, cam_frame: str, lidar_frame: str):
         if options.calib is not None:
             return parse_calib(options.calib), None
-        info = _pick(path, conns, (INFO_TYPE,), options.info_topic or _info_topic(conns, img.topic), "CameraInfo",
-                     "--info-topic")
-        if info is None:
-            raise D3LVOInputError(path, f"no CameraInfo topic for {img.topic}: give the intrinsics and extrinsics "
+        infos = _pick(path, conns, (INFO_TYPE,), options.info_topic or _info_topic(conns, img.topic), "CameraInfo",
+                      "--info-topic")
+        first = next(iter(reader.messages(connections=infos)), None) if infos else None
+        if first is None:
+            raise D3LVOInputError(path, f"no CameraInfo message for {img.topic}: give the intrinsics and extrinsics "
                                         "with --calib FILE (K and T_cam_lidar, or KITTI's P2 and Tr)")
-        msg = reader.deserialize(next(iter(reader.messages(connections=[info])))[2], info.msgtype)
+        msg = reader.deserialize(first[2], first[0].msgtype)
         K, P = np.asarray(_field(msg, "k"), float).reshape(3, 3), np.asarray(_field(msg, "p"), float).reshape(3, 4)
         if not P[:, :3].any():
             P = np.hstack([K, np.zeros((3, 1))])
+        R = np.asarray(_field(msg, "r"), float).reshape(3, 3)
+        R = R if R.any() else np.eye(3)  # the rectifying rotation: raw optical frame -> rectified
         rectify = None
         D = np.asarray(_field(msg, "d"), float)
-        if D.size and np.abs(D).max() > 0:  # a raw image: undistort to P's pinhole before the network sees it
-            R = np.asarray(_field(msg, "r"), float).reshape(3, 3)
-            R = R if R.any() else np.eye(3)
-            rectify = cv2.initUndistortRectifyMap(K, D, R, P[:, :3], (int(msg.width), int(msg.height)), cv2.CV_32FC1)
+        size = (int(msg.width), int(msg.height))
+        if D.size and np.abs(D).max() > 0 and "rect" not in img.topic:
+            # a raw image: undistort (and rectify) to P's pinhole before the network sees it
+            model = msg.distortion_model
+            if model in ("plumb_bob", "rational_polynomial"):
+                rectify = cv2.initUndistortRectifyMap(K, D, R, P[:, :3], size, cv2.CV_32FC1)
+            elif model == "equidistant":
+                rectify = cv2.fisheye.initUndistortRectifyMap(K, D[:4], R, P[:, :3], size, cv2.CV_32FC1)
+            else:
+                raise D3LVOInputError(path, f"CameraInfo's distortion model {model!r} is not plumb_bob, "
+                                            "rational_polynomial or equidistant: give a rectified image topic")
         tf_conns = [c for c in conns if c.msgtype == TF_TYPE and c.topic.endswith("tf_static")]
         tfs = static_transforms(reader, tf_conns) if tf_conns else {}
         Tr = chain(tfs, cam_frame, lidar_frame) if cam_frame != lidar_frame else np.eye(4)
+        if Tr is not None:  # into the rectified frame P projects from
+            Tr = make_se3(R, np.zeros(3)) @ Tr
         if Tr is None:
             frames = sorted({f for pc in tfs for f in pc})
             where = f"/tf_static links no chain from '{lidar_frame}' to '{cam_frame}' (its frames: {frames})" \
@@ -218,10 +245,10 @@ class BagSequence(SensorSequence):
         return Calib(P2=P, Tr=Tr), rectify
 
     def _message(self, k: int, i: int):
-        conn, t = self._conns[k], self._log_times[i][k]
-        for c, _, raw in self._reader.messages(connections=[conn], start=t, stop=t + 1):
+        conns, t = self._conns[k], self._log_times[i][k]
+        for c, _, raw in self._reader.messages(connections=conns, start=t, stop=t + 1):
             return self._reader.deserialize(raw, c.msgtype)
-        raise D3LVOInputError(self.root, f"message of frame {i} on {conn.topic} vanished from the bag")
+        raise D3LVOInputError(self.root, f"message of frame {i} on {conns[0].topic} vanished from the bag")
 
     def image(self, i: int) -> np.ndarray:
         from rosbags.image import message_to_cvimage
@@ -230,7 +257,7 @@ class BagSequence(SensorSequence):
         try:
             rgb = message_to_cvimage(msg, "rgb8")
         except Exception as e:  # noqa: BLE001
-            raise D3LVOInputError(self.root, f"frame {i}'s image on {self._conns[0].topic} cannot be decoded "
+            raise D3LVOInputError(self.root, f"frame {i}'s image on {self._conns[0][0].topic} cannot be decoded "
                                              f"({e})") from None
         if rgb.ndim == 2:
             rgb = cv2.cvtColor(rgb, cv2.COLOR_GRAY2RGB)
