@@ -140,9 +140,7 @@ MUTATIONS = [
     Mutation("run --config: the file's values override options given on the command line", "cli/run_cmd.py",
              "        if not given(k):", "        if True:", ("tests/test_formats.py::test_results_folder_holds_the_run_and_its_config_repeats_it",)),
     Mutation("pipeline: the reader thread prepares the frame after next", "d3lvo_deploy/pipeline.py",
-             "ahead = pool.submit(load, i + 1) if pool is not None and j + 1 < n and odo.pre is not None else None",
-             "ahead = pool.submit(load, min(i + 2, rc.start + n - 1)) if pool is not None and j + 1 < n and "
-             "odo.pre is not None else None",
+             "ahead = pool.submit(load, i + 1)", "ahead = pool.submit(load, min(i + 2, rc.start + n - 1))",
              ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
     Mutation("auto: an uncompiled OpenVINO held to the cached one's shorter pay-back", "d3lvo_deploy/backends.py",
              "need = AUTO_MIN_FRAMES_CACHED if cached else AUTO_MIN_FRAMES",
