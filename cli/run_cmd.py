@@ -202,13 +202,6 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                                     "(results/latest is the newest)")
     seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
                           max_dt)
-    folder = None
-    if out_path is None:
-        fresh = out_dir is None
-        folder = ResultsFolder(out_dir if out_dir is not None else default_folder(Path("results"), _name(seq)))
-        out_path, pose_fmt = folder.poses, "kitti"
-        viz = None if viz is None else (viz if viz.is_absolute() else folder.path / viz)
-        rerun = None if rerun is None else (rerun if rerun.is_absolute() else folder.path / rerun)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision)
     sc.check()
@@ -235,13 +228,27 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
     if rerun is not None and viz_every < 1:
         raise D3LVOInputError(rerun, "--viz-every must be at least 1")
+    folder, fresh = None, False
+    if out_path is None:  # the last step before the model loads: a refused argument leaves no folder
+        fresh = out_dir is None
+        folder = ResultsFolder(out_dir if out_dir is not None else default_folder(Path("results"), _name(seq)))
+        out_path, pose_fmt = folder.poses, "kitti"
+        viz = None if viz is None else (viz if viz.is_absolute() else folder.path / viz)
+        rerun = None if rerun is None else (rerun if rerun.is_absolute() else folder.path / rerun)
     rc = RunConfig(out=out_path, fmt=pose_fmt, start=start, end=end, resume=resume, overwrite=overwrite,
                    realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun, pipeline=pipeline)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # every argument, the output file and the model are checked before the progress bar
-        with console.status(loading):
-            plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
+        try:
+            with console.status(loading):
+                plan = prepare_run(seq, model_dir, rc, sc, odometry=odometry)
+        except D3LVOInputError:
+            if folder is not None and fresh:
+                from d3lvo_deploy.results import remove_if_empty
+
+                remove_if_empty(folder.path)
+            raise
     _print_warnings(caught)
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
     engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"

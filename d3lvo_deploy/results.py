@@ -37,13 +37,29 @@ POSES, POSES_TUM, CONFIG, METRICS, LATENCY, PLOT = (
 
 
 def default_folder(base: Path, name: str, now: float | None = None) -> Path:
+    """`base/<name>_<time>`, created here so that two runs started in the same second (say, one
+    per engine) never share one: the second gets `-2`."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
-    folder = base / f"{name}_{stamp}"
-    k = 1
-    while folder.exists():  # two runs within one second
-        k += 1
-        folder = base / f"{name}_{stamp}-{k}"
-    return folder
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise D3LVOInputError(base, f"cannot create the results folder ({e.strerror})") from None
+    for k in range(1, 1000):
+        folder = base / (f"{name}_{stamp}" if k == 1 else f"{name}_{stamp}-{k}")
+        try:
+            folder.mkdir()
+            return folder
+        except FileExistsError:
+            continue
+    raise D3LVOInputError(base, f"a thousand runs of {name} started at {stamp}: no free folder name")
+
+
+def remove_if_empty(folder: Path) -> None:
+    """A run that stopped at its checks leaves no empty results folder behind."""
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
 
 
 def link_latest(folder: Path) -> None:

@@ -314,6 +314,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     if tc.precision == "fp16" and device.type != "cuda":
         raise ValueError("fp16 training needs a CUDA GPU (its gradient scaler); use bf16 on the CPU")
     scaler = torch.amp.GradScaler(device.type, enabled=tc.precision == "fp16")
+    if resume and ck.get("scaler"):  # fp16's loss scale continues where it stopped
+        scaler.load_state_dict(ck["scaler"])
     solver_loss = tc.loss.solver_pose_weight > 0
     if solver_loss and not cfg.point_solver:
         raise ValueError("a pose loss through the solver needs the point head (pose_head='points')")
@@ -403,7 +405,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                     history.append(record)
                     if step % tc.ckpt_every == 0 or step == end:
                         save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
-                                        step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state())
+                                        step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state(),
+                                        scaler=scaler.state_dict())
                     if on_step is not None:
                         on_step(step, record)
             epoch += 1
@@ -411,7 +414,8 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         # Ctrl-C: keep the step just finished, so that --resume loses nothing
         if rank == 0 and step > 0:
             save_checkpoint(tc.out, model, cfg, loss=criterion.state_dict(), optimizer=opt.state_dict(),
-                            step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state())
+                            step=step, history=history, train_config=asdict(tc), rng=torch.get_rng_state(),
+                                        scaler=scaler.state_dict())
         raise TrainingInterrupted(step, tc.out) from None
     if distributed:
         dist.barrier()

@@ -259,3 +259,15 @@ def test_kitti_format_without_a_scan_folder_is_one_error(tmp_path):
     shutil.rmtree(tmp_path / "s" / "velodyne")
     r = runner.invoke(app, ["run", str(tmp_path / "s"), "--format", "kitti"])
     assert r.exit_code == 1 and "velodyne" in r.output and "missing" in r.output
+
+
+def test_runs_started_together_get_their_own_folders_and_a_refused_run_none(tmp_path, monkeypatch):
+    from d3lvo_deploy.results import default_folder
+
+    now = 1_700_000_000.0
+    a, b = default_folder(tmp_path / "results", "drive", now), default_folder(tmp_path / "results", "drive", now)
+    assert a != b and a.is_dir() and b.is_dir() and b.name == a.name + "-2"
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, ["run", str(TINY), "--onnx", str(tmp_path / "nowhere")])
+    assert r.exit_code == 1
+    assert sorted(p.name for p in (tmp_path / "results").iterdir()) == sorted([a.name, b.name])  # none added
