@@ -139,3 +139,19 @@ for s in heldout_09 heldout_10; do
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/mlp_onnx" --out "$OUT/eval/mlp_$s.txt" --overwrite
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/rgb_onnx" --out "$OUT/eval/rgb_$s.txt" --overwrite
 done
+
+# the static prior pt_conf_full (a point weighs 1 once its confidence reaches it), measured on the
+# validation drives with and without traffic (docs/model-card.md): it stays off
+[ -f "$OUT/data/val_static/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static" --frames 100 --seed 601 \
+  --size "$SIZE" --motion-from "$GT/05.txt" --motion-start 1800
+for s in val_traffic val_static; do
+  "$D3LVO" run "$OUT/data/$s" --backend onnxruntime --out "$OUT/eval/conf_full_1_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+done
+for c in 0.5 0.7 0.85; do
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/conf_full_$c" --set pt_conf_full=$c
+  for s in val_traffic val_static; do
+    "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
+      --overwrite
+  done
+done
