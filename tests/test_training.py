@@ -154,21 +154,24 @@ def test_training_data_without_poses_is_refused_before_any_work(small_synth, tmp
 
 
 def test_resume_continues_the_step_count(small_synth, tmp_path):
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
-                        "--steps", "2", "--preset", "small", "--batch-size", "1", "--ckpt-every", "1",
-                        "--set", "gn_lidar_pool=stride"],
-                       cwd=ROOT, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    def train_cli(*args):  # in this process: the four runs share one torch import
+        return CliRunner().invoke(app, ["train", "--data", str(small_synth), *args])
+
+    r = train_cli("--out", str(tmp_path / "a.pt"), "--steps", "2", "--preset", "small", "--batch-size", "1",
+                  "--ckpt-every", "1", "--set", "gn_lidar_pool=stride")
+    assert r.exit_code == 0, r.output
     assert load_checkpoint(tmp_path / "a.pt")["config"].gn_lidar_pool == "stride"
     # no --preset: the checkpoint's (small) is taken, not the default one; --set changes a solver
     # setting (no weights) on resume, and the weights carry on
     before = load_checkpoint(tmp_path / "a.pt")["model"]
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "a.pt"),
-                        "--steps", "3", "--batch-size", "1", "--resume", str(tmp_path / "a.pt"),
-                        "--set", "gn_lidar_pool=nearest", "--set", "gn_iters=3"],
-                       cwd=ROOT, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    assert "resumed at step 2" in r.stderr
+    r = train_cli("--out", str(tmp_path / "a.pt"), "--steps", "3", "--batch-size", "1", "--resume",
+                  str(tmp_path / "a.pt"), "--set", "gn_lidar_pool=nearest", "--set", "gn_iters=3")
+    assert r.exit_code == 0, r.output
+    assert "resumed at step 2" in r.output
     after = load_checkpoint(tmp_path / "a.pt")
     assert after["step"] == 3 and after["config"].gn_lidar_pool == "nearest" and after["config"].gn_iters == 3
     assert after["config"].height == 176  # the small preset, from the checkpoint
@@ -176,13 +179,11 @@ def test_resume_continues_the_step_count(small_synth, tmp_path):
     fresh = D3LVO(after["config"]).state_dict()
     dist = lambda a: sum(float((a[k] - v).pow(2).sum()) for k, v in before.items() if v.is_floating_point())  # noqa: E731
     assert 0 < dist(after["model"]) < 0.01 * dist(fresh)  # one more step from the same weights, not a new network
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "c.pt"),
-                        "--steps", "1", "--set", "flow_hidden=8"], cwd=ROOT, capture_output=True, text=True)
-    assert r.returncode == 1 and "--set takes solver settings only" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "--data", str(small_synth), "--out", str(tmp_path / "b.pt"),
-                        "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume", str(tmp_path / "a.pt")],
-                       cwd=ROOT, capture_output=True, text=True)
-    assert r.returncode == 1 and "another model config" in r.stderr and "Traceback" not in r.stderr
+    r = train_cli("--out", str(tmp_path / "c.pt"), "--steps", "1", "--set", "flow_hidden=8")
+    assert r.exit_code == 1 and "--set takes solver settings only" in r.output
+    r = train_cli("--out", str(tmp_path / "b.pt"), "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume",
+                  str(tmp_path / "a.pt"))
+    assert r.exit_code == 1 and "another model config" in r.output and "Traceback" not in r.output
 
 
 def test_resume_equals_an_uninterrupted_run(small_synth, tmp_path):
