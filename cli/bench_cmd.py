@@ -126,6 +126,15 @@ def bench_command(
 
         require("embreex", what="d3lvo bench without --seq-dir or ../shared/data (it renders frames)")
     cpu = cpu_info()
+    # what is timed, in words: the bench's first line says it, so a figure is never read as another model's
+    if default_network:
+        what = f"the default network (D3LVOConfig(), random weights) exported at {width}x{height}"
+    elif ckpt is not None:
+        what = f"{ckpt}, exported" + (f" at {width}x{height}" if height is not None else "")
+    elif onnx is not None:
+        what = str(onnx)
+    else:
+        what = "the bundled model (what `d3lvo run` uses by default)"
     with tempfile.TemporaryDirectory(prefix="d3lvo-bench-") as tmpd:
         tmp = Path(tmpd)
         if default_network:
@@ -188,7 +197,7 @@ def bench_command(
     best = min(timed, key=lambda b: timed[b]["total"]["median"])
     first = "onnxruntime" if "onnxruntime" in timed else best
     res = {
-        "model": str(onnx), "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
+        "model": str(onnx), "timed": what, "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
         "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
         "threads": threads, "runs": runs, "frames_from": str(seq.root),
         "ov_precision": ov_precision if "openvino" in engines else None,
@@ -223,6 +232,7 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
     from d3lvo_deploy.cpu import CpuInfo
 
     cpu = CpuInfo(res["cpu"]["model"], res["cpu"]["cores"], tuple(res["cpu"]["isa"]))
+    out.print(f"model: {res['timed']}", highlight=False)
     out.print(f"CPU: {cpu.line()}; numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
     ovp = f", OpenVINO {res['ov_precision']}" if res.get("ov_precision") not in (None, "f32") else ""
     t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}{ovp}), "

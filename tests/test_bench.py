@@ -80,6 +80,7 @@ def test_cli_bench_from_checkpoint(small_model, small_synth):
                             "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output
     assert "frames/s" in r.output
+    assert f"model: {ck}, exported" in r.output  # the first line says what was timed
 
 
 def test_cli_bench_default_network_at_another_size(small_synth):
@@ -88,7 +89,7 @@ def test_cli_bench_default_network_at_another_size(small_synth):
                             "--threads", "1", "--no-torch", "--json", "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
-    assert d["size"] == "256x64"
+    assert d["size"] == "256x64" and d["timed"].startswith("the default network")
     from models.config import D3LVOConfig
 
     assert d["flow_levels"] == list(D3LVOConfig().flow_levels)
