@@ -14,7 +14,7 @@ from rich.table import Table
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors, out
+from .common import console, friendly_errors, given_on_command_line, out
 from .progress import frame_progress
 
 
@@ -139,8 +139,7 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     unknown = sorted(set(table) - set(RUN_KEYS))
     if unknown:
         raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
-    given = lambda name: getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in (  # noqa: E731
-        "DEFAULT", "DEFAULT_MAP")  # by name: typer may bring its own copy of click's ParameterSource
+    given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
     for k, v in table.items():
         if k == "fmt" and (given("path") or given("seq_dir")):
             continue  # another recording: its own format, guessed again
@@ -254,7 +253,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"
     if folder is not None:
         absolute = lambda p: None if p is None else Path(p).resolve()  # noqa: E731 - repeatable from anywhere
-        record = dict(path=seq.root.resolve(), fmt=_format_of(seq), calib=absolute(calib), image_topic=image_topic,
+        record = dict(path=seq.root.resolve(), fmt=seq.format_name, calib=absolute(calib), image_topic=image_topic,
                       cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt),
                       onnx=absolute(onnx), method=method,
                       start=start, end=end, provider=provider, threads=threads,
@@ -273,7 +272,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         return
     if method == "d3lvo":
         console.print(f"model {model_dir} on {engine_name} ({why})", highlight=False)
-    console.print(f"{_format_of(seq)} recording {seq.root}: {len(seq)} frames; "
+    console.print(f"{seq.format_name} recording {seq.root}: {len(seq)} frames; "
                   f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:
         console.print(f"resuming after {len(plan.done)} poses already in {out_path}", highlight=False)
@@ -306,12 +305,6 @@ def _name(seq) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
 
 
-def _format_of(seq) -> str:
-    from d3lvo_deploy.datasets import BagSequence, FolderSequence, KittiRawSequence
-
-    return {BagSequence: "rosbag", FolderSequence: "folder", KittiRawSequence: "kitti-raw"}.get(type(seq), "kitti")
-
-
 def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq) -> None:
     import platform
 
@@ -342,9 +335,7 @@ def _engine_version(engine_name: str) -> str:
         import onnxruntime
 
         return onnxruntime.__version__
-    import numpy
-
-    return "numpy " + numpy.__version__
+    return "numpy " + np.__version__
 
 
 def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, plot: Path | None, label: str,
@@ -357,9 +348,7 @@ def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, 
     if folder is not None:
         written.append(folder.write_tum(seq.times, start))
         if summary is not None:
-            written.append(folder.write_json(LATENCY, {**latency_report(summary.stats(), summary.latencies_ms),
-                                                       "throughput_fps": summary.throughput, "wall_s": summary.wall_s,
-                                                       "pipelined": summary.pipelined}))
+            written.append(folder.write_json(LATENCY, latency_report(summary)))
         if plot is None:
             from d3lvo_deploy.extras import installed
 

@@ -9,7 +9,7 @@ import typer
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors
+from .common import console, friendly_errors, given_on_command_line
 from .progress import frame_progress
 
 
@@ -91,8 +91,7 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     from models.train_config import read_train_config
 
     file = read_train_config(config)
-    given = lambda name: getattr(ctx.get_parameter_source(name), "name", "DEFAULT") not in (  # noqa: E731
-        "DEFAULT", "DEFAULT_MAP")
+    given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
     if given("preset"):  # another preset is another model: the file's model fields make way for it
         file["model"] = {k: v for k, v in file["model"].items() if k in ("mode", "completion", "pose_head")}
     if given("resume"):  # a resumed run takes its weights from the checkpoint, never from init

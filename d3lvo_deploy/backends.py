@@ -137,10 +137,8 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
     cache = openvino_cache_dir(openvino.__version__)
     if cache is None:
         return False
-    stages = manifest.get("stages", {})
-    threads = {name: single_thread_stage(manifest, name) for name in stages}
-    return all((cache / _marker(replace(sc, threads=1) if threads[n] else sc, n, st["sha256"])).is_file()
-               for n, st in stages.items())
+    return all((cache / _marker(replace(sc, threads=1) if single_thread_stage(manifest, n) else sc, n,
+                                st["sha256"])).is_file() for n, st in manifest.get("stages", {}).items())
 
 
 def single_thread_stage(manifest: dict, stage: str) -> bool:

@@ -52,10 +52,10 @@ def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warm
         odo.step(img, pts)
         if k >= warmup:
             times.add(dict(odo.last_timing.ms))
-    if not sc.profile_dir:
-        times.pipelined_fps = pipelined_fps(odo, frames, runs)
     if sc.profile_dir:
         model.end_profiling()
+    else:
+        times.pipelined_fps = pipelined_fps(odo, frames, runs)
     return times
 
 
@@ -64,14 +64,18 @@ def pipelined_fps(odo: Odometry, frames: list, runs: int) -> float:
     on a second thread while the network works on frame t. Latency per frame is what the stage
     times add up to; this is how many frames per second pass."""
     with ThreadPoolExecutor(1) as pool:
-        ahead = [pool.submit(odo.prepare, *frames[0])]
+        ahead = pool.submit(odo.prepare, *frames[0])
         t0 = time.perf_counter()
         for k in range(runs):
-            prepared = ahead[0].result()
-            nxt = frames[(k + 1) % len(frames)]
-            odo.step_prepared(prepared, on_encoded=lambda nxt=nxt: ahead.__setitem__(0, pool.submit(odo.prepare, *nxt)))
+            prepared = ahead.result()
+
+            def read_next(k=k):
+                nonlocal ahead
+                ahead = pool.submit(odo.prepare, *frames[(k + 1) % len(frames)])
+
+            odo.step_prepared(prepared, on_encoded=read_next)
         wall = time.perf_counter() - t0
-        ahead[0].result()
+        ahead.result()
     return runs / wall
 
 

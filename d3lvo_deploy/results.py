@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from .errors import D3LVOInputError
+from .poses import read_poses, write_poses
 
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10: the same parser, as a package
     import tomli as tomllib
-from .poses import read_poses, write_poses
 
 POSES, POSES_TUM, CONFIG, METRICS, LATENCY, PLOT = (
     "poses.txt", "poses_tum.txt", "config.toml", "metrics.json", "latency.json", "trajectory.png")
@@ -163,7 +163,10 @@ def _jsonable(v):
     raise TypeError(type(v).__name__)
 
 
-def latency_report(stats: dict, latencies: dict[str, list[float]]) -> dict:
-    total = latencies.get("total", [])
-    return {"unit": "ms", "stages": stats, "frames": len(total),
-            "median_total": float(np.median(total)) if total else None, "per_frame_total": total}
+def latency_report(summary) -> dict:
+    """A run's `RunSummary` as latency.json: per-stage statistics, every frame's total, and the
+    throughput beside them (they differ with the pipeline)."""
+    total = summary.latencies_ms.get("total", [])
+    return {"unit": "ms", "stages": summary.stats(), "frames": len(total),
+            "median_total": float(np.median(total)) if total else None, "per_frame_total": total,
+            "throughput_fps": summary.throughput, "wall_s": summary.wall_s, "pipelined": summary.pipelined}

@@ -56,6 +56,7 @@ class GreyscaleWarning(UserWarning):
 @dataclass
 class KittiSequence:
     frame_label: ClassVar[str] = "cam0 (rectified left grey camera, KITTI's convention)"
+    format_name: ClassVar[str] = "kitti"  # `d3lvo run --format`
     root: Path
     calib: Calib
     frame_names: list[str]

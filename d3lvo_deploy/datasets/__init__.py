@@ -13,10 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import D3LVOInputError
-from ..poses import read_poses
 from ..sequence import KittiSequence
 from .base import SensorSequence
 from .folder import FolderSequence, is_folder
@@ -71,8 +68,5 @@ def open_sequence(path: str | Path, fmt: str = "auto", gt: str | Path | None = N
             opts = BagOptions(**{**opts.__dict__, "calib": Path(calib)})
         seq = BagSequence.open(path, opts)
     if gt is not None:
-        truth = read_poses(gt)
-        if len(truth) != len(seq):
-            raise D3LVOInputError(gt, f"{len(truth)} poses for a sequence of {len(seq)} frames")
-        seq.gt, seq.gt_path = truth, Path(gt)
+        seq.attach_ground_truth(gt)
     return seq

@@ -6,16 +6,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..calib import Calib
 from ..errors import D3LVOInputError
-from ..poses import Trajectory
+from ..poses import Trajectory, read_poses
 
 
 @dataclass
 class SensorSequence:
+    format_name: ClassVar[str] = ""  # `d3lvo run --format`, set by each reader
     root: Path  # the file or folder the user named
     calib: Calib  # P2: the camera's projection, Tr: LiDAR -> the output frame
     frame_names: list[str]
@@ -38,6 +40,13 @@ class SensorSequence:
     @property
     def ground_truth(self) -> Trajectory | None:
         return self.gt
+
+    def attach_ground_truth(self, path: str | Path) -> None:
+        """Score against this trajectory file; one pose per frame or one clear error."""
+        truth = read_poses(path)
+        if len(truth) != len(self):
+            raise D3LVOInputError(path, f"{len(truth)} poses for a sequence of {len(self)} frames")
+        self.gt, self.gt_path = truth, Path(path)
 
 
 def check_increasing(path: Path, times: np.ndarray) -> np.ndarray:

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from ..calib import parse_calib
 from ..errors import D3LVOInputError
-from ..poses import read_poses
 from ..sequence import _check_contiguous, _read_times, read_image, read_scan
 from .base import SensorSequence, as_scan
 
@@ -103,6 +103,7 @@ def is_folder(path: Path) -> bool:
 
 @dataclass
 class FolderSequence(SensorSequence):
+    format_name: ClassVar[str] = "folder"
     image_files: list[Path] | None = None
     scan_files: list[Path] | None = None
 
@@ -134,15 +135,13 @@ class FolderSequence(SensorSequence):
             calib = next((root / n for n in CALIB_NAMES if (root / n).is_file()), root / "calib.txt")
         cal = parse_calib(calib)
         times = _read_times(root / "times.txt", len(names))
-        gt_path = Path(gt) if gt is not None else (root / "poses.txt" if (root / "poses.txt").is_file() else None)
-        truth = None
-        if gt_path is not None:
-            truth = read_poses(gt_path)
-            if len(truth) != len(names):
-                raise D3LVOInputError(gt_path, f"{len(truth)} poses for a sequence of {len(names)} frames")
         label = "cam0 (the frame of the calibration's P2 and Tr)"
-        return cls(root=root, calib=cal, frame_names=names, times=times, frame_label=label, gt=truth, gt_path=gt_path,
-                   image_files=img_files, scan_files=[by_stem[n] for n in names])
+        seq = cls(root=root, calib=cal, frame_names=names, times=times, frame_label=label, image_files=img_files,
+                  scan_files=[by_stem[n] for n in names])
+        gt = gt if gt is not None else (root / "poses.txt" if (root / "poses.txt").is_file() else None)
+        if gt is not None:
+            seq.attach_ground_truth(gt)
+        return seq
 
     def image(self, i: int) -> np.ndarray:
         return read_image(self.image_files[i])

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -127,6 +128,7 @@ def _read_oxts(folder: Path, names: list[str]) -> np.ndarray:
 
 @dataclass
 class KittiRawSequence(SensorSequence):
+    format_name: ClassVar[str] = "kitti-raw"
     @classmethod
     def open(cls, drive: str | Path) -> "KittiRawSequence":
         drive = Path(drive).resolve()  # the calib files may be in its parent, the date folder

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -149,6 +150,7 @@ def pair_stamps(image_t: np.ndarray, cloud_t: np.ndarray, max_dt: float) -> list
 
 @dataclass
 class BagSequence(SensorSequence):
+    format_name: ClassVar[str] = "rosbag"
     options: BagOptions = field(default_factory=BagOptions)
     _reader: object = field(default=None, repr=False)
     _conns: tuple = field(default=(), repr=False)
