@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -23,6 +25,33 @@ def shared_path(*parts: str) -> Path:
     return p
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _own_cache_and_cores(tmp_path_factory):
+    """Each test process keeps its compiled and optimised graphs in its own folder: never the
+    user's cache, never a file another pytest-xdist worker is writing."""
+    os.environ["D3LVO_CACHE"] = str(tmp_path_factory.mktemp("d3lvo-cache"))
+
+
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
+    """A folder that `build` fills once per test run. Under pytest-xdist the first worker to ask
+    builds it while the others wait, instead of each rendering or exporting the same thing again
+    (pytest-xdist's documented recipe for session fixtures, with filelock). Tests only read it."""
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, above every worker's own
+    folder, done = root / "built-once" / name, root / "built-once" / f"{name}.done"
+    folder.parent.mkdir(exist_ok=True)
+    with FileLock(f"{done}.lock"):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(autouse=True)
 def _seeded():
     """Every test starts from the same torch seed, so that a model a test builds does not depend
@@ -38,9 +67,8 @@ def small_synth(tmp_path_factory) -> Path:
     from d3lvo_deploy.synth.generator import SynthConfig, generate
     from d3lvo_deploy.synth.sensors import LidarConfig
 
-    out = tmp_path_factory.mktemp("synth") / "seq"
-    generate(out, SynthConfig(frames=6, seed=7, width=620, height=188, lidar=LidarConfig(noise_m=0.0, dropout=0.0)))
-    return out
+    cfg = SynthConfig(frames=6, seed=7, width=620, height=188, lidar=LidarConfig(noise_m=0.0, dropout=0.0))
+    return built_once(tmp_path_factory, "synth", lambda d: generate(d / "seq", cfg)) / "seq"
 
 
 def render_turning_drive(out: Path, frames: int, phase: float, seed: int) -> Path:
@@ -64,12 +92,15 @@ def render_turning_drive(out: Path, frames: int, phase: float, seed: int) -> Pat
 @pytest.fixture(scope="session")
 def turning_drives(tmp_path_factory) -> tuple[Path, Path]:
     """(training, held-out) turning drives: other phases of the motion, other worlds."""
-    d = tmp_path_factory.mktemp("turning")
-    return render_turning_drive(d / "train", 12, 0.0, 31), render_turning_drive(d / "heldout", 7, 1.3, 32)
+    d = built_once(tmp_path_factory, "turning", lambda d: (render_turning_drive(d / "train", 12, 0.0, 31),
+                                                           render_turning_drive(d / "heldout", 7, 1.3, 32)))
+    return d / "train", d / "heldout"
 
 
 def make_checkpoint(path: Path, seed: int = 0, **cfg_kw) -> Path:
-    """An untrained but deterministic small checkpoint (random BN statistics, so BN folding matters)."""
+    """An untrained but deterministic small checkpoint (random BN statistics, so BN folding matters).
+    Two Gauss-Newton steps per level unless a test asks otherwise: the second still starts from the
+    first's pose, and the unrolled graph exports in half the time of the default four."""
     import torch
 
     from models.checkpoint import save_checkpoint
@@ -77,7 +108,7 @@ def make_checkpoint(path: Path, seed: int = 0, **cfg_kw) -> Path:
     from models.d3lvo import D3LVO
 
     torch.manual_seed(seed)
-    cfg = D3LVOConfig.small(height=64, width=224, **cfg_kw)
+    cfg = D3LVOConfig.small(height=64, width=224, **{"gn_iters": 2, **cfg_kw})
     model = D3LVO(cfg).eval()
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
@@ -92,10 +123,9 @@ def small_model(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint, exported ONNX folder) of a small 224x64 model."""
     from export.onnx_export import ExportConfig, export_checkpoint
 
-    d = tmp_path_factory.mktemp("model")
-    ck = make_checkpoint(d / "ck.pt")
-    export_checkpoint(ck, ExportConfig(out=d / "onnx"))
-    return ck, d / "onnx"
+    d = built_once(tmp_path_factory, "model",
+                   lambda d: export_checkpoint(make_checkpoint(d / "ck.pt"), ExportConfig(out=d / "onnx")))
+    return d / "ck.pt", d / "onnx"
 
 
 @pytest.fixture(scope="session")
@@ -106,6 +136,5 @@ def traffic_clip(tmp_path_factory) -> Path:
     from d3lvo_deploy.synth.generator import SynthConfig, generate
     from d3lvo_deploy.synth.sensors import LidarConfig
 
-    out = tmp_path_factory.mktemp("traffic") / "seq"
-    return generate(out, SynthConfig(frames=8, seed=21, width=416, height=128, traffic=6.0,
-                                     lidar=LidarConfig(noise_m=0.0, dropout=0.0)))
+    cfg = SynthConfig(frames=8, seed=21, width=416, height=128, traffic=6.0, lidar=LidarConfig(noise_m=0.0, dropout=0.0))
+    return built_once(tmp_path_factory, "traffic", lambda d: generate(d / "seq", cfg)) / "seq"

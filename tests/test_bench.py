@@ -83,13 +83,16 @@ def test_cli_bench_from_checkpoint(small_model, small_synth):
     assert f"model: {ck}, exported" in r.output  # the first line says what was timed
 
 
-def test_cli_bench_default_network_at_another_size(small_synth):
-    """--height/--width without --ckpt: the default network (D3LVOConfig()) exported at that size."""
-    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--seq-dir", str(small_synth), "--runs", "1",
-                            "--threads", "1", "--no-torch", "--json", "--backend", "onnxruntime"])
+def test_cli_bench_default_network_at_another_size_and_precision(small_synth):
+    """--height/--width without --ckpt: the default network (D3LVOConfig()) exported at that size;
+    --precision exports it at that precision first. The JSON says which."""
+    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "fp16", "--seq-dir",
+                            str(small_synth), "--runs", "1", "--threads", "1", "--no-torch", "--json", "--backend",
+                            "onnxruntime"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
     assert d["size"] == "256x64" and d["timed"].startswith("the default network")
+    assert d["precision"] == "fp16"
     from models.config import D3LVOConfig
 
     assert d["flow_levels"] == list(D3LVOConfig().flow_levels)
@@ -132,15 +135,6 @@ def test_conv_bench_table_totals(capsys):
     calls = sum(int(r[4]) for r in rows)  # label is 4 tokens: "3->16 3x3/2 at 64x32"
     assert total[2] == str(calls)
     assert abs(sum(float(r[6]) for r in rows) - float(total[4])) < 0.05 * len(rows)
-
-
-def test_cli_bench_precision(small_synth):
-    """--precision exports the default network at that precision first; the JSON says which."""
-    r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "fp16", "--seq-dir",
-                            str(small_synth), "--runs", "1", "--threads", "1", "--no-torch", "--json", "--backend",
-                            "onnxruntime"])
-    assert r.exit_code == 0, r.output
-    assert json.loads(r.stdout)["precision"] == "fp16"
 
 
 def test_cli_bench_precision_errors(small_model):

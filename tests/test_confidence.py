@@ -22,10 +22,12 @@ def busy_street(tmp_path_factory):
     """16 frames at the bundled model's training size, 10 vehicles per 100 m, sensor effects on;
     a seed and motion no training drive used."""
     pytest.importorskip("embreex")
+    from conftest import built_once
+
     from d3lvo_deploy.synth.generator import SynthConfig, generate
 
-    out = tmp_path_factory.mktemp("busy") / "seq"
-    return generate(out, SynthConfig(frames=16, seed=4242, width=620, height=188, traffic=10.0, sensor_effects=True))
+    cfg = SynthConfig(frames=16, seed=4242, width=620, height=188, traffic=10.0, sensor_effects=True)
+    return built_once(tmp_path_factory, "busy_street", lambda d: generate(d / "seq", cfg)) / "seq"
 
 
 def test_confidence_separates_movers_and_beats_uniform_weights(busy_street):

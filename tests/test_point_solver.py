@@ -125,13 +125,12 @@ def test_confidence_one_is_the_numpy_tracker():
 @pytest.fixture(scope="session")
 def points_model(tmp_path_factory):
     """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model."""
-    from conftest import make_checkpoint
+    from conftest import built_once, make_checkpoint
     from export.onnx_export import ExportConfig, export_checkpoint
 
-    d = tmp_path_factory.mktemp("points_model")
-    ck = make_checkpoint(d / "ck.pt", pose_head="points")
-    export_checkpoint(ck, ExportConfig(out=d / "onnx"))
-    return ck, d / "onnx"
+    d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
+        make_checkpoint(d / "ck.pt", pose_head="points"), ExportConfig(out=d / "onnx")))
+    return d / "ck.pt", d / "onnx"
 
 
 def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_path):
