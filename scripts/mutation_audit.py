@@ -146,6 +146,17 @@ MUTATIONS = [
              "need = AUTO_MIN_FRAMES_CACHED if cached else AUTO_MIN_FRAMES",
              "need = AUTO_MIN_FRAMES_CACHED",
              ("tests/test_backends.py::test_auto_keeps_a_short_run_off_an_uncompiled_openvino",)),
+    Mutation("change_frame conjugates the wrong way round (inv(T) A T)", "d3lvo_deploy/geometry.py",
+             "return np.asarray(T_b_a) @ np.asarray(T_rel) @ se3_inv(T_b_a)",
+             "return se3_inv(T_b_a) @ np.asarray(T_rel) @ np.asarray(T_b_a)",
+             ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
+    Mutation("LiDAR projected without P2's baseline column", "d3lvo_deploy/calib.py",
+             "return self.P2 @ self.Tr", "return np.c_[self.P2[:, :3], np.zeros(3)] @ self.Tr",
+             ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
+    Mutation("network view: the crop two rows taller than the network's aspect", "d3lvo_deploy/projection.py",
+             "ch = min(src_height, int(round(cw * net_height / net_width)))",
+             "ch = min(src_height, int(round(cw * net_height / net_width)) + 2)",
+             ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
 ]
 
 

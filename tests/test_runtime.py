@@ -25,17 +25,77 @@ from d3lvo_deploy.sequence import KittiSequence
 runner = CliRunner()
 
 
-def test_onnx_trajectory_equals_torch(small_model, small_synth, tmp_path):
-    from models.checkpoint import build_model, load_checkpoint
-    from models.predict import predict_sequence
+def _torch_trajectory_from_the_files(ck: Path, seq_dir: Path) -> np.ndarray:
+    """The torch model fed by this test's own reading of the sequence, sharing nothing with the
+    runtime but the files: PIL decodes the PNGs, calib.txt is split by hand, the view is the
+    largest bottom-centre crop of the network's aspect (docs/conventions.md) resized with INTER_AREA,
+    each pixel keeps its nearest LiDAR return (P2 Tr, pixel centres at integers), and each
+    image_2 motion A goes to cam0 through P2's baseline b = K2^-1 p4: T = [I|-b] A [I|b]."""
+    import cv2
+    import torch
+    from PIL import Image
 
+    from models.checkpoint import build_model, load_checkpoint
+    from models.layers import inverse_depth
+
+    model = build_model(load_checkpoint(ck)).eval()
+    w, h = model.cfg.width, model.cfg.height
+    rows = {line.split(":")[0]: np.array(line.split(":")[1].split(), float)
+            for line in (seq_dir / "calib.txt").read_text().splitlines() if ":" in line}
+    P2, Tr = rows["P2"].reshape(3, 4), np.vstack([rows["Tr"].reshape(3, 4), [0, 0, 0, 1]])
+    names = sorted(f.stem for f in (seq_dir / "image_2").glob("*.png"))
+    W, H = Image.open(seq_dir / "image_2" / f"{names[0]}.png").size
+    cw = min(W, int(H * w / h))
+    ch = min(H, int(round(cw * h / w)))
+    top, left = H - ch, (W - cw) // 2
+    sx, sy = w / cw, h / ch
+    fx, fy, cx, cy = P2[0, 0] * sx, P2[1, 1] * sy, (P2[0, 2] - left + 0.5) * sx - 0.5, (P2[1, 2] - top + 0.5) * sy - 0.5
+    K = torch.tensor([[fx, fy, cx, cy]], dtype=torch.float32)
+
+    def inputs(name):
+        rgb = np.asarray(Image.open(seq_dir / "image_2" / f"{name}.png").convert("RGB"))[top:top + ch, left:left + cw]
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+        scan = np.fromfile(seq_dir / "velodyne" / f"{name}.bin", np.float32).reshape(-1, 4)
+        x = (P2 @ Tr @ np.c_[scan[:, :3].astype(float), np.ones(len(scan))].T).T
+        keep = x[:, 2] > 0.1
+        z = x[keep, 2]
+        u = (x[keep, 0] / z - left + 0.5) * sx - 0.5
+        v = (x[keep, 1] / z - top + 0.5) * sy - 0.5
+        c, r = np.floor(u + 0.5).astype(int), np.floor(v + 0.5).astype(int)
+        inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+        depth = np.zeros((h, w), np.float32)
+        for ci, ri, zi in sorted(zip(c[inside], r[inside], z[inside]), key=lambda t: -t[2]):
+            depth[ri, ci] = zi  # far to near: the nearest return is written last
+        return torch.from_numpy(rgb).permute(2, 0, 1)[None], torch.from_numpy(depth)[None, None]
+
+    b = np.linalg.solve(P2[:, :3], P2[:, 3])
+    to2, from2 = np.eye(4), np.eye(4)
+    to2[:3, 3], from2[:3, 3] = b, -b
+    poses, prev, motion = [np.eye(4)], None, torch.eye(4)[None]
+    with torch.no_grad():
+        for name in names:
+            rgb, depth = inputs(name)
+            feats, depths, grey = model.encode(rgb, model.complete(rgb, depth))
+            cur = (feats, depths, grey, model.lidar_levels(inverse_depth(depth, model.cfg.min_depth)))
+            if prev is not None:
+                motion = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], None,
+                                         cur[1])["matrix"]
+                poses.append(poses[-1] @ from2 @ motion[0].double().numpy() @ to2)
+            prev = cur
+    return np.array(poses)
+
+
+def test_onnx_trajectory_equals_torch(small_model, small_synth, tmp_path):
+    """The runtime (its own reading, calibration, preprocessing, engine and frame change) against
+    the torch model fed by the test's own reading of the files."""
     ck, onnx_dir = small_model
-    torch_traj = predict_sequence(build_model(load_checkpoint(ck)), small_synth)
+    torch_traj = _torch_trajectory_from_the_files(ck, small_synth)
     run_sequence(KittiSequence.open(small_synth), onnx_dir, RunConfig(out=tmp_path / "p.txt"))
     est = read_poses(tmp_path / "p.txt").poses
     assert est.shape == torch_traj.shape == (6, 4, 4)
     np.testing.assert_allclose(est[0], np.eye(4))
     assert np.linalg.norm(torch_traj[-1, :3, 3]) > 1.0  # the clip moves far beyond the tolerance
+    assert max(np.degrees(np.arccos(np.clip((np.trace(p[:3, :3]) - 1) / 2, -1, 1))) for p in torch_traj) > 0.05
     np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-5)
     np.testing.assert_allclose(est[:, :3, :3], torch_traj[:, :3, :3], atol=1e-6)
 
