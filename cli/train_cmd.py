@@ -128,6 +128,11 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
 
     from .export_cmd import solver_settings
 
+    from models.train import BATCH_NORMS
+
+    if file["train"].get("batch_norm", "sync") not in BATCH_NORMS:
+        raise D3LVOInputError(config, f"[train] batch_norm must be one of {', '.join(BATCH_NORMS)}, "
+                                      f"not {file['train']['batch_norm']!r}")
     if not data:
         raise D3LVOInputError(config, "give training sequences: --data DIR (repeatable) or data = [...] in [train]")
     if out is None:

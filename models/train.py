@@ -57,9 +57,17 @@ class TrainConfig:
     # solvers and the losses stay in fp32 either way
     precision: str = "fp32"
     dist_timeout_min: float = 180.0  # how long ranks wait for each other (rank 0's validation)
+    # BatchNorm across DDP ranks: "sync" normalises by the global batch's statistics on GPUs
+    # (SyncBatchNorm, as one process with the whole batch would; torch cannot sync them on the CPU,
+    # where each rank keeps its own, as "local" does everywhere); "frozen" keeps every BN layer at
+    # its running statistics (fine-tuning from a checkpoint), which makes R ranks of batch b train
+    # exactly as one process of batch R*b
+    batch_norm: str = "sync"
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
 
+
+BATCH_NORMS = ("sync", "local", "frozen")
 
 # the point solver's inputs in a sample (d3lvo_deploy.points.solver_feeds)
 SOLVER_FEEDS = ("image1", "image2", "points1", "point_mask1", "image_intrinsics")
@@ -127,16 +135,22 @@ def best_path(out: str | Path) -> Path:
     return out.with_name(out.stem + ".best" + out.suffix)
 
 
+def per_pair_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The mean of `err` over each sample's `mask`, then over the batch, a sample without targets
+    counting 0. Each pair weighs 1/B however many pixels it has, so the loss is linear in the
+    batch: R DDP ranks with batch b average to exactly the loss of one process with batch R*b."""
+    mask = mask.expand_as(err)
+    total = torch.where(mask, err, torch.zeros_like(err)).flatten(1).sum(1)
+    return (total / mask.flatten(1).sum(1).clamp(min=1)).mean()
+
+
 def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     """L1 (m) against dense depth where the sequence has it (synthetic depth_2/), within 80 m."""
     if "dense1" not in out:
         return torch.zeros((), device=device)
     pred = torch.cat([out["dense1"], out["dense2"]])
     gt = torch.cat([batch["gt_depth1"], batch["gt_depth2"]]).to(device)
-    mask = (gt > 0) & (gt < 80)
-    if not mask.any():
-        return torch.zeros((), device=device)
-    return (pred - gt).abs()[mask].mean()
+    return per_pair_mean((pred - gt).abs(), (gt > 0) & (gt < 80))
 
 
 def motion_loss(out: dict, batch: dict, device) -> torch.Tensor:
@@ -146,11 +160,10 @@ def motion_loss(out: dict, batch: dict, device) -> torch.Tensor:
         return torch.zeros((), device=device)
     logits = out["moving_logits"]
     moving = batch["moving"].to(device)
-    known = moving.flatten(1).amin(1) >= 0
-    if not known.any():
-        return torch.zeros((), device=device)
+    known = (moving.flatten(1).amin(1) >= 0).view(-1, 1, 1, 1)
     target = cell_pool(moving.clamp(min=0), moving.shape[-1] // logits.shape[-1])
-    return F.binary_cross_entropy_with_logits(logits[known], target[known])
+    bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+    return per_pair_mean(bce, known.expand_as(bce))
 
 
 def cell_pool(x: torch.Tensor, s: int) -> torch.Tensor:
@@ -181,9 +194,14 @@ def flow_errors(flows: list[torch.Tensor], batch: dict, device) -> list[tuple[to
 
 
 def flow_loss(flows: list[torch.Tensor], batch: dict, device) -> torch.Tensor:
-    """Mean end-point error of each flow level against its target (true flow, else rigid), averaged over levels."""
-    errs = flow_errors(flows, batch, device)
-    return torch.stack([e for e, _ in errs]).mean() if errs else torch.zeros((), device=device)
+    """End-point error of each flow level against its target (true flow, else rigid), per pair
+    (`per_pair_mean`), averaged over levels."""
+    gt, valid = batch["flow"].to(device), batch["flow_valid"].to(device)
+    errs = []
+    for f in flows:
+        g, m = level_flow_target(gt, valid, f.shape[-2:])
+        errs.append(per_pair_mean((f - g).norm(dim=1, keepdim=True), m))
+    return torch.stack(errs).mean() if errs else torch.zeros((), device=device)
 
 
 def _rotation_deg(R: torch.Tensor) -> torch.Tensor:
@@ -250,7 +268,9 @@ class EpochSampler(Sampler):
         self.n, self.seed, self.epoch, self.skip = n, seed, 0, 0
 
     def __iter__(self):
-        g = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+        # DistributedSampler's permutation: with R ranks, rank r takes every R-th index of it, so the
+        # ranks' batches of a step together are this sampler's batch of R times their size
+        g = torch.Generator().manual_seed(self.seed + self.epoch)
         return iter(torch.randperm(self.n, generator=g)[self.skip:].tolist())
 
     def __len__(self) -> int:
@@ -307,6 +327,10 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
 
     elif tc.init and load_matching(model, tc.init) == 0:
         raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to start from")
+    if tc.batch_norm not in BATCH_NORMS:
+        raise ValueError(f"batch_norm must be one of {', '.join(BATCH_NORMS)}, not {tc.batch_norm!r}")
+    if distributed and tc.batch_norm == "sync" and device.type == "cuda":
+        model = torch.nn.SyncBatchNorm.convert_sync_batchnorm(model)  # same parameters and buffers
     ddp_model = torch.nn.parallel.DistributedDataParallel(model) if distributed else model
     amp_dtype = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}.get(tc.precision, "bad")
     if amp_dtype == "bad":
@@ -354,6 +378,10 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 if step >= end:
                     break
                 ddp_model.train()
+                if tc.batch_norm == "frozen":
+                    for m in model.modules():
+                        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                            m.eval()
                 solver = {k: b[k].to(device) for k in SOLVER_FEEDS} if solver_loss else None
                 with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
                     out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device),

@@ -227,19 +227,36 @@ def test_ddp_two_cpu_processes(small_synth, tmp_path):
     assert ck["step"] == 2
 
 
-def test_ddp_replicas_stay_identical_with_clipping(small_synth, tmp_path):
-    """Two gloo ranks, clipping forced on every step (grad_clip 1e-3): after 3 steps both ranks hold
-    bitwise the same weights and loss balance terms s_t, s_q (each rank clipping by its own norm,
-    or s_t, s_q left out of the all-reduce, makes them differ)."""
+def test_ddp_replicas_stay_identical_with_clipping_and_equal_one_process(small_synth, tmp_path):
+    """Two gloo ranks of batch 1, clipping forced on every step (grad_clip 1e-3), BatchNorm frozen
+    (torch cannot sync its statistics on the CPU): after 3 steps both ranks hold bitwise the same
+    weights and loss balance terms s_t, s_q (each rank clipping by its own norm, or s_t, s_q left
+    out of the all-reduce, makes them differ), and the same weights as one process of batch 2 on
+    the same pairs, to float rounding (the losses weigh each pair alike, so averaging the ranks'
+    gradients is the gradient of the whole batch)."""
     # the script's folder comes first on its sys.path: name this tree so it imports this tree's models
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    script = str(ROOT / "tests" / "ddp_replica.py")
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                        str(ROOT / "tests" / "ddp_replica.py"), str(small_synth), str(tmp_path), "1e-3"],
+                        script, str(small_synth), str(tmp_path / "ddp"), "1e-3", "1", "frozen"],
                        cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    a, b = (tmp_path / "rank_0.txt").read_text(), (tmp_path / "rank_1.txt").read_text()
+    a, b = (tmp_path / "ddp" / "rank_0.txt").read_text(), (tmp_path / "ddp" / "rank_1.txt").read_text()
     print(a, b)
     assert a == b
+    r = subprocess.run([sys.executable, script, str(small_synth), str(tmp_path / "one"), "1e-3", "2", "frozen"],
+                       cwd=ROOT, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    ddp, one = torch.load(tmp_path / "ddp" / "rank_0.pt"), torch.load(tmp_path / "one" / "rank_0.pt")
+    start = D3LVO(D3LVOConfig.small(height=64, width=224, dropout=0.0)).state_dict()  # seed 0, as both runs
+    keys = [k for k, v in one["model"].items() if v.is_floating_point()]
+    diff = torch.cat([(ddp["model"][k] - one["model"][k]).flatten() for k in keys]).norm()
+    moved = torch.cat([(one["model"][k] - start[k]).flatten() for k in keys]).norm()
+    # measured: 8.5e-5 of the distance trained (Adam divides tiny gradients' rounding by tiny
+    # norms); 0.38 where both ranks are handed the same pairs
+    assert diff < 1e-3 * moved, (float(diff), float(moved))
+    for k in ("s_t", "s_q"):
+        assert float(ddp["loss"][k]) == pytest.approx(float(one["loss"][k]), abs=1e-5)
 
 
 def test_rigid_flow_hand_case():
@@ -383,6 +400,7 @@ flip = 0.0
     for text, words in (("[model]\nwidht = 3\n", "[model] unknown key 'widht'"),
                         ("[model]\nflow_levels = [1, 2]\n", "flow_levels must run coarse to fine"),
                         ("[train]\nsteps = 'many'\n", "[train] steps = 'many'"),
+                        ("[train]\nbatch_norm = 'global'\n", "[train] batch_norm must be one of sync, local, frozen"),
                         ("[optimizer]\nlr = 1\n", "unknown table [optimizer]")):
         bad = tmp_path / "bad.toml"
         bad.write_text(text)
