@@ -55,6 +55,8 @@ def train_command(
     precision: str = typer.Option("fp32", "--precision", help="fp32 | bf16 (autocast on CPU and GPU) | fp16 (GPU, "
                                   "with a gradient scaler); the pose solvers always run in fp32."),
     workers: int = typer.Option(0, "--workers", help="DataLoader worker processes."),
+    depth_cache: Path | None = typer.Option(None, "--depth-cache", help="Folder that keeps each frame's projected "
+                                            "depth and solver points after the first epoch (faster loading)."),
     solver_loss: float = typer.Option(0.0, "--solver-loss", help="The point head: weight of the pose loss through "
                                       "the Gauss-Newton solver into the confidence (0: motion masks only; turns off "
                                       "flip and rotation augmentation, which the solver's images do not get)."),
@@ -81,6 +83,7 @@ FILE_OPTIONS = {("train", "data"): "data", ("train", "out"): "out", ("train", "v
                 ("train", "steps"): "steps", ("train", "stop_at"): "stop_at", ("train", "batch_size"): "batch_size",
                 ("train", "lr"): "lr", ("train", "val_every"): "val_every", ("train", "ckpt_every"): "ckpt_every",
                 ("train", "seed"): "seed", ("train", "device"): "device", ("train", "num_workers"): "workers",
+                ("train", "depth_cache"): "depth_cache",
                 ("train", "init"): "init", ("train", "precision"): "precision", ("model", "preset"): "preset",
                 ("model", "mode"): "mode", ("model", "completion"): "completion", ("model", "pose_head"): "pose_head",
                 ("loss", "solver_pose_weight"): "solver_loss"}
@@ -106,14 +109,14 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
         if not given(name):
             if key in ("data", "val"):
                 value = [Path(v) for v in value]
-            elif key in ("out", "init") and value is not None:
+            elif key in ("out", "init", "depth_cache") and value is not None:
                 value = Path(value)
             opts[name] = value
     return file
 
 
 def _train(data, out, config, val, steps, resume, stop_at, mode, completion, preset, pose_head, init, batch_size, lr,
-           val_every, ckpt_every, seed, device, precision, workers, solver_loss, solver, file) -> None:
+           val_every, ckpt_every, seed, device, precision, workers, depth_cache, solver_loss, solver, file) -> None:
     from d3lvo_deploy.extras import require
 
     require("torch", what="d3lvo train")
@@ -170,6 +173,7 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
                      device=device, num_workers=workers, init=str(init) if init else None, precision=precision,
+                     depth_cache=str(depth_cache) if depth_cache else None,
                      loss=replace(LossConfig(**file["loss"]), solver_pose_weight=solver_loss),
                      augment=AugmentConfig(**file["augment"]), **file["train"])
     if solver_loss < 0 or (solver_loss > 0 and cfg.pose_head != "points"):

@@ -12,7 +12,10 @@ depth input, so that completion is supervised where it has to guess rather than 
 
 from __future__ import annotations
 
+import hashlib
 import json
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,7 +78,7 @@ def pose_vector(A: np.ndarray) -> np.ndarray:
 class FrameLoader:
     """Reads one frame of a sequence at the network resolution, through the runtime's preprocessor."""
 
-    def __init__(self, seq: KittiSequence, cfg: D3LVOConfig):
+    def __init__(self, seq: KittiSequence, cfg: D3LVOConfig, cache: str | Path | None = None):
         self.seq, self.cfg = seq, cfg
         h, w = seq.image(0).shape[:2]
         self.pre = FramePreprocessor.create(seq.calib, w, h, cfg.width, cfg.height, cfg.depth_input, cfg.max_depth)
@@ -85,6 +88,35 @@ class FrameLoader:
         meta = seq.root / "synth.json"
         self.static_synthetic = meta.is_file() and not json.loads(meta.read_text()).get("traffic", 0)
         self.points = point_config(cfg.to_dict())
+        self.cache = None if cache is None else Path(cache) / self._cache_key()
+
+    def _cache_key(self) -> str:
+        """Everything a cached frame depends on besides its own files: the sequence, the view, the
+        depth input and the projection, and the solver's point selection."""
+        v = self.view
+        key = json.dumps([str(self.seq.root.resolve()), [v.src_width, v.src_height, v.top, v.left, v.crop_width,
+                          v.crop_height, v.width, v.height], self.cfg.depth_input, self.cfg.max_depth,
+                          np.round(self.pre.P, 9).tolist(), str(self.points)])
+        return f"{self.seq.root.name}-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
+
+    def _cached(self, kind: str, i: int, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        """`make()` once per frame and kind, then from `cache` (an .npz named after the frame's scan
+        and image sizes and times, so that a changed file is read again). Written atomically:
+        loader workers and DDP ranks may fill the same cache."""
+        if self.cache is None or not self.seq.scan_path(i).is_file():
+            return make()
+        stamp = "-".join(f"{st.st_size}-{st.st_mtime_ns}" for st in
+                         (self.seq.scan_path(i).stat(), self.seq.image_path(i).stat()))
+        f = self.cache / f"{self.seq.frame_names[i]}-{kind}-{stamp}.npz"
+        if f.is_file():
+            with np.load(f) as z:
+                return dict(z)
+        arrays = make()
+        self.cache.mkdir(parents=True, exist_ok=True)
+        tmp = f.with_name(f"{f.stem}.{os.getpid()}.tmp.npz")
+        np.savez(tmp, **arrays)
+        os.replace(tmp, f)
+        return arrays
 
     def rgb(self, i: int) -> np.ndarray:
         img = self.seq.image(i)
@@ -93,9 +125,13 @@ class FrameLoader:
         return self.pre.rgb(img)
 
     def depth_input(self, i: int, points: np.ndarray | None = None) -> np.ndarray:
+        """The depth input of frame i from its whole scan (cached, where a cache is given), or
+        from `points` (a share of it, never cached)."""
         if self.cfg.depth_input == "none":
             return self.pre.depth(None)
-        return self.pre.depth(self.seq.scan(i) if points is None else points)
+        if points is not None:
+            return self.pre.depth(points)
+        return self._cached("depth", i, lambda: {"depth": self.pre.depth(self.seq.scan(i))})["depth"]
 
     def _png(self, folder: str, i: int) -> np.ndarray | None:
         f = self.seq.root / folder / f"{self.seq.frame_names[i]}.png"
@@ -130,8 +166,13 @@ class FrameLoader:
 
     def solver_frame(self, i: int) -> SolverFrame:
         """Frame i as the point solver reads it (camera resolution, textured LiDAR points)."""
-        return SolverFrame.of(self.seq.image(i), self.seq.scan(i), self.seq.calib.T_cam2_velo, self.seq.calib.K2,
-                              self.points)
+        def make() -> dict[str, np.ndarray]:
+            f = SolverFrame.of(self.seq.image(i), self.seq.scan(i), self.seq.calib.T_cam2_velo, self.seq.calib.K2,
+                               self.points)
+            return {"grey": f.grey, "points": f.points}
+
+        a = self._cached("solver", i, make)
+        return SolverFrame(a["grey"], a["points"])
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
@@ -145,11 +186,12 @@ class FrameLoader:
 
 class PairDataset(Dataset):
     def __init__(self, seq_dirs: list[str | Path], cfg: D3LVOConfig, augment: AugmentConfig | None = None,
-                 seed: int = 0, solver: bool = False):
+                 seed: int = 0, solver: bool = False, cache: str | Path | None = None):
         """`solver`: each sample also carries the point solver's inputs (camera-resolution grey
         images and frame t-1's points), for a pose loss through the solver; the solver reads the
         camera's own images, so flips and rotations, which would have to be applied to them too,
-        must be off."""
+        must be off. `cache`: a folder for each frame's projected depth and solver points
+        (`FrameLoader`), so that later epochs read them instead of the scans."""
         if solver and augment is not None and (augment.flip > 0 or augment.rotation_deg > 0):
             raise ValueError("the solver's inputs are not augmented: flip and rotation_deg must be 0 with solver=True")
         self.cfg, self.augment, self.seed, self.solver = cfg, augment, seed, solver
@@ -159,7 +201,7 @@ class PairDataset(Dataset):
             seq = KittiSequence.open(d)
             if seq.ground_truth is None:
                 raise D3LVOInputError(d, "has no ground-truth poses (poses.txt or ../../poses/NN.txt) to train on")
-            self.loaders.append(FrameLoader(seq, cfg))
+            self.loaders.append(FrameLoader(seq, cfg, cache))
             self.items += [(len(self.loaders) - 1, i) for i in range(1, len(seq))]
         self.epoch = 0
 

@@ -52,6 +52,9 @@ class TrainConfig:
     # start from these weights where names and shapes match (e.g. a model with another pose head)
     init: str | None = None
     num_workers: int = 0
+    # a folder for each frame's projected depth input and solver points: later epochs read them
+    # instead of reading and projecting the scans again (models.data.FrameLoader)
+    depth_cache: str | None = None
     device: str = "auto"
     # fp32 | bf16 (autocast on CPU and GPU) | fp16 (GPU only, with a gradient scaler); the pose
     # solvers and the losses stay in fp32 either way
@@ -344,7 +347,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     if solver_loss and not cfg.point_solver:
         raise ValueError("a pose loss through the solver needs the point head (pose_head='points')")
     augment = replace(tc.augment, flip=0.0, rotation_deg=0.0) if solver_loss else tc.augment
-    data = PairDataset(tc.data, cfg, augment=augment, seed=tc.seed, solver=solver_loss)
+    data = PairDataset(tc.data, cfg, augment=augment, seed=tc.seed, solver=solver_loss, cache=tc.depth_cache)
     if len(data) == 0:
         raise D3LVOInputError(None, "no training pairs: the --data sequences need at least 2 frames")
     if distributed:

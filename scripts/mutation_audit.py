@@ -155,6 +155,14 @@ MUTATIONS = [
              "ch = min(src_height, int(round(cw * net_height / net_width)))",
              "ch = min(src_height, int(round(cw * net_height / net_width)) + 2)",
              ("tests/test_runtime.py::test_onnx_trajectory_equals_torch",)),
+    Mutation("depth cache keyed by the frame name alone (a rewritten scan is served stale)", "models/data.py",
+             'f = self.cache / f"{self.seq.frame_names[i]}-{kind}-{stamp}.npz"',
+             'f = self.cache / f"{self.seq.frame_names[i]}-{kind}.npz"',
+             ("tests/test_training.py::test_depth_cache_gives_the_same_samples_and_follows_changed_scans",)),
+    Mutation("the one-process sampler draws its own permutation, not DistributedSampler's", "models/train.py",
+             "g = torch.Generator().manual_seed(self.seed + self.epoch)",
+             "g = torch.Generator().manual_seed(self.seed + self.epoch + 1)",
+             ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping_and_equal_one_process",)),
 ]
 
 
