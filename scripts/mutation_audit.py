@@ -163,6 +163,12 @@ MUTATIONS = [
              "g = torch.Generator().manual_seed(self.seed + self.epoch)",
              "g = torch.Generator().manual_seed(self.seed + self.epoch + 1)",
              ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping_and_equal_one_process",)),
+    Mutation("export builds the checkpoint's solver, ignoring --set (the manifest still lists --set)",
+             "export/onnx_export.py", 'model = build_model({**ck, "config": cfg})', "model = build_model(ck)",
+             ("tests/test_point_solver.py::test_export_set_reaches_the_graph",)),
+    Mutation("the classical mode takes the model's damping as its stop threshold", "d3lvo_deploy/direct.py",
+             'stop_step=model_config["pt_stop"]', 'stop_step=model_config["pt_damping"]',
+             ("tests/test_point_solver.py::test_direct_method_is_the_models_classical_mode",)),
 ]
 
 

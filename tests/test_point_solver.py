@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import onnx
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -157,10 +158,36 @@ def test_direct_method_is_the_models_classical_mode(points_model):
     from d3lvo_deploy.manifest import load_manifest
 
     cfg = load_manifest(points_model[1])["model_config"]
-    dc = DirectConfig.of_model({**cfg, "pt_iters": [3, 2], "pt_capacity": 999, "pt_min_gradient": 0.05})
+    dc = DirectConfig.of_model({**cfg, "pt_iters": [3, 2], "pt_capacity": 999, "pt_min_gradient": 0.05,
+                                "pt_stop": 3e-5, "pt_damping": 7e-3})
     assert dc.iterations == (3, 2) and dc.levels == 2
     assert dc.points.capacity == 999 and dc.points.min_gradient == 0.05
+    assert dc.stop_step == 3e-5 and dc.damping == 7e-3
     assert DirectConfig.of_model(cfg) == DirectConfig()  # the defaults agree on both sides
+
+
+def test_export_set_reaches_the_graph(points_model, tmp_path):
+    """`d3lvo export --set` changes the exported solver, not only the manifest: each Gauss-Newton
+    step takes one median (one TopK), so pt_iters=3,2 gives 5 TopK nodes where the default
+    (15, 15, 15) gives 45, and the point list is pt_capacity long."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from d3lvo_deploy.manifest import load_manifest
+
+    def topk_and_capacity(folder):
+        g = onnx.load(str(folder / "flowpose.onnx")).graph
+        points = next(i for i in g.input if i.name == "points1")
+        return sum(n.op_type == "TopK" for n in g.node), points.type.tensor_type.shape.dim[1].dim_value
+
+    ck, default_dir = points_model
+    assert topk_and_capacity(default_dir) == (45, 2048)
+    r = CliRunner().invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_iters=3,2",
+                                 "--set", "pt_capacity=512", "--set", "pt_stop=3e-5"])
+    assert r.exit_code == 0, r.output
+    assert topk_and_capacity(tmp_path / "o") == (5, 512)
+    m = load_manifest(tmp_path / "o")["model_config"]
+    assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"]) == ([3, 2], 512, 3e-5)
 
 
 def test_no_points_no_motion_beyond_the_start():
