@@ -113,7 +113,7 @@ MUTATIONS = [
     Mutation("DDP leaves the loss balance terms' gradients out of the all-reduce", "models/train.py",
              "                            dist.all_reduce(q.grad)\n                            q.grad /= world\n",
              "                            pass\n",
-             ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping",)),
+             ("tests/test_training.py::test_ddp_replicas_stay_identical_with_clipping_and_equal_one_process",)),
     Mutation("point solver: pyramid levels keep the full-resolution intrinsics", "models/point_solver.py",
              "        Kl = K * (0.5 ** lvl)", "        Kl = K",
              ("tests/test_point_solver.py",)),
@@ -195,8 +195,10 @@ def run_tests(tree: Path, tests: tuple[str, ...]) -> tuple[bool, list[str]]:
         raise SystemExit(f"the scratch copy imports the checkout's package ({env_check.strip()}), not its own")
     r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests], cwd=tree,
                        capture_output=True, text=True)
+    if r.returncode in (3, 4, 5):  # internal error, usage error (a test id not found), nothing collected
+        raise SystemExit(f"pytest could not run {' '.join(tests)} (exit {r.returncode}):\n{r.stdout[-2000:]}")
     failed = [ln.split(" ", 1)[1].split(" - ")[0] for ln in r.stdout.splitlines() if ln.startswith(("FAILED", "ERROR"))]
-    return r.returncode != 0, failed
+    return r.returncode in (1, 2), failed  # 2: a collection error, which the suite would show too
 
 
 def main(argv: list[str]) -> int:
