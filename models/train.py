@@ -166,7 +166,7 @@ def motion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     known = (moving.flatten(1).amin(1) >= 0).view(-1, 1, 1, 1)
     target = cell_pool(moving.clamp(min=0), moving.shape[-1] // logits.shape[-1])
     bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
-    return per_pair_mean(bce, known.expand_as(bce))
+    return per_pair_mean(bce, known)
 
 
 def cell_pool(x: torch.Tensor, s: int) -> torch.Tensor:
