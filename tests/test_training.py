@@ -369,6 +369,7 @@ height = 64
 width = 224
 flow_levels = [3, 2]
 feature_widths = [16, 32, 32, 48]
+gn_iters = 1
 [train]
 data = ["{small_synth}"]
 out = "{tmp_path / 'a.pt'}"
@@ -385,6 +386,7 @@ flip = 0.0
     ck = torch.load(tmp_path / "a.pt", weights_only=False)
     cfg = D3LVOConfig.from_dict(ck["config"])
     assert (cfg.height, cfg.width, tuple(cfg.flow_levels), tuple(cfg.feature_widths)) == (64, 224, (3, 2), (16, 32, 32, 48))
+    assert cfg.gn_iters == 1  # a solver setting from the file too
     assert ck["train_config"]["weight_decay"] == 0.0 and ck["train_config"]["loss"]["flow_weight"] == 0.25
     assert ck["train_config"]["augment"]["flip"] == 0.0
     # the written configuration repeats it; the command line wins over the file
