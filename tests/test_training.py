@@ -98,7 +98,8 @@ def test_short_training_beats_the_baselines(turning_drives, tmp_path):
     before = pair_metrics(D3LVO(cfg), [str(held_dir)])
     ck = tmp_path / "ck.pt"
     tc = TrainConfig(data=[str(train_dir)], out=str(ck), steps=60, batch_size=4, lr=2e-3, warmup=5, ckpt_every=60,
-                     augment=AugmentConfig(flip=0.5, brightness=0.1, rotation_deg=0))
+                     augment=AugmentConfig(flip=0.5, brightness=0.1, rotation_deg=0),
+                     depth_cache=str(tmp_path / "cache"))  # the same samples, projected once
     train(cfg, tc)
     model = D3LVO(cfg)
     model.load_state_dict(load_checkpoint(ck, expect=cfg)["model"])
