@@ -26,7 +26,7 @@ def shared_path(*parts: str) -> Path:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _own_cache_and_cores(tmp_path_factory):
+def _own_graph_cache(tmp_path_factory):
     """Each test process keeps its compiled and optimised graphs in its own folder: never the
     user's cache, never a file another pytest-xdist worker is writing."""
     os.environ["D3LVO_CACHE"] = str(tmp_path_factory.mktemp("d3lvo-cache"))
