@@ -126,12 +126,10 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
     from models.config import SOLVER_KEYS
     from models.data import AugmentConfig
     from models.loss import LossConfig
-    from models.train import TrainConfig, TrainingInterrupted, best_path, train
+    from models.train import BATCH_NORMS, TrainConfig, TrainingInterrupted, best_path, train
     from models.train_config import model_config
 
     from .export_cmd import solver_settings
-
-    from models.train import BATCH_NORMS
 
     if file["train"].get("batch_norm", "sync") not in BATCH_NORMS:
         raise D3LVOInputError(config, f"[train] batch_norm must be one of {', '.join(BATCH_NORMS)}, "
