@@ -25,6 +25,15 @@ from d3lvo_deploy.sequence import KittiSequence
 runner = CliRunner()
 
 
+def _cam2_motion_to_cam0(P2: np.ndarray):
+    """By hand: x_cam2 = x_cam0 + b with b = K2^-1 p4 from P2's fourth column, so an image_2
+    motion A is [I|-b] A [I|b] in cam0."""
+    b = np.linalg.solve(P2[:, :3], P2[:, 3])
+    to2, from2 = np.eye(4), np.eye(4)
+    to2[:3, 3], from2[:3, 3] = b, -b
+    return lambda A: from2 @ A @ to2
+
+
 def _torch_trajectory_from_the_files(ck: Path, seq_dir: Path) -> np.ndarray:
     """The torch model fed by this test's own reading of the sequence, sharing nothing with the
     runtime but the files: PIL decodes the PNGs, calib.txt is split by hand, the view is the
@@ -68,9 +77,7 @@ def _torch_trajectory_from_the_files(ck: Path, seq_dir: Path) -> np.ndarray:
             depth[ri, ci] = zi  # far to near: the nearest return is written last
         return torch.from_numpy(rgb).permute(2, 0, 1)[None], torch.from_numpy(depth)[None, None]
 
-    b = np.linalg.solve(P2[:, :3], P2[:, 3])
-    to2, from2 = np.eye(4), np.eye(4)
-    to2[:3, 3], from2[:3, 3] = b, -b
+    to_cam0 = _cam2_motion_to_cam0(P2)
     poses, prev, motion = [np.eye(4)], None, torch.eye(4)[None]
     with torch.no_grad():
         for name in names:
@@ -80,7 +87,7 @@ def _torch_trajectory_from_the_files(ck: Path, seq_dir: Path) -> np.ndarray:
             if prev is not None:
                 motion = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], None,
                                          cur[1])["matrix"]
-                poses.append(poses[-1] @ from2 @ motion[0].double().numpy() @ to2)
+                poses.append(poses[-1] @ to_cam0(motion[0].double().numpy()))
             prev = cur
     return np.array(poses)
 
@@ -110,15 +117,13 @@ def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
     odo = Odometry(onnx_dir, small_synth / "calib.txt")
     odo.keep_outputs = True
     P2 = seq.calib.P2
-    b = np.linalg.inv(P2[:, :3]) @ P2[:, 3]
-    to2, from2 = np.eye(4), np.eye(4)
-    to2[:3, 3], from2[:3, 3] = b, -b
+    to_cam0 = _cam2_motion_to_cam0(P2)
     expect = [np.eye(4)]
     poses = [odo.step(seq.image(0), seq.scan(0))]
     for i in range(1, len(seq)):
         poses.append(odo.step(seq.image(i), seq.scan(i)))
         A = odo.last["flowpose"]["matrix"][0].astype(np.float64)
-        expect.append(expect[-1] @ (from2 @ A @ to2))
+        expect.append(expect[-1] @ to_cam0(A))
     assert max(np.degrees(np.arccos(np.clip((np.trace(p[:3, :3]) - 1) / 2, -1, 1))) for p in expect) > 0.01
     np.testing.assert_allclose(np.array(poses), np.array(expect), atol=1e-9)
     np.testing.assert_array_equal(np.array(poses)[:, :3], read_poses(tmp_path / "p.txt").poses[:, :3])
