@@ -88,6 +88,11 @@ class D3LVOConfig:
     # below it; the solver then tracks the scene exactly as the classical tracker does wherever
     # the network is not fairly sure something moves. 1: the weight is the confidence itself
     pt_conf_full: float = 1.0
+    # what the confidence net reads: "evidence", only where the starting motion fails to explain
+    # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
+    # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
+    # learns what moving things look like and where they tend to be (docs/model-card.md)
+    pt_conf_inputs: str = "all"
     gn_iters: int = 4  # Gauss-Newton iterations per level (unrolled in the graph)
     gn_extra_levels: tuple[int, ...] = (1,)  # levels finer than the flow's with a Gauss-Newton step, no flow
     gn_features: int = 8  # learned feature channels beside the grey image in the residual
@@ -141,6 +146,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_conf_power must be above 0, not {self.pt_conf_power!r}")
         if not (isinstance(self.pt_gate, (int, float)) and 0 <= self.pt_gate < 1):
             raise ValueError(f"pt_gate must be in [0, 1), not {self.pt_gate!r}")
+        if self.pt_conf_inputs not in ("all", "evidence"):
+            raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):
             raise ValueError(f"pt_conf_full must be in (0, 1], not {self.pt_conf_full!r}")
         if self.correlation not in ("tiled", "slices", "stacked"):

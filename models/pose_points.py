@@ -3,9 +3,10 @@
 At the finest flow level, a small conv net reads where the starting motion (constant velocity at
 run time) fails to explain frame t: the disagreement between the learned flow and that motion's
 rigid flow, frame t's depth against the depth the motion predicts, and frame t's features warped
-rigidly and by the flow against frame t-1's, beside the flow estimator's state, the depth and
-frame t-1's features; it predicts per cell the logit that the cell lies on something that moves
-on its own. It is trained directly against the synthetic drives' motion masks (binary cross-entropy,
+rigidly and by the flow against frame t-1's, beside the inverse depth (with pt_conf_inputs="all"
+also the flow estimator's state and frame t-1's features, from which it learns appearance and
+place priors that flag static road as moving); it predicts per cell the logit that the cell lies
+on something that moves on its own. It is trained directly against the synthetic drives' motion masks (binary cross-entropy,
 `models.train`). Each LiDAR point of frame t-1 takes the confidence 1 - p(moving) of the cell it
 projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
 static scene the confidence stays near 1 and the pose is the classical one; a truck that keeps
@@ -57,9 +58,11 @@ class PointPose(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.level = cfg.flow_levels[-1]
-        # hidden state, flow - rigid flow, inverse depth, frame t-1's features, and three residuals
-        # of the rigid motion: depth, features warped rigidly, features warped by the flow
-        self.moving = MovingLogits(cfg.flow_hidden[1] + 2 + 1 + cfg.feature_widths[self.level] + 3)
+        # flow - rigid flow, inverse depth and three residuals of the rigid motion: depth, features
+        # warped rigidly, features warped by the flow; with "all", the hidden state and frame t-1's
+        # features too
+        looks = cfg.flow_hidden[1] + cfg.feature_widths[self.level] if cfg.pt_conf_inputs == "all" else 0
+        self.moving = MovingLogits(2 + 1 + 3 + looks)
         self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
@@ -80,8 +83,11 @@ class PointPose(nn.Module):
         depth_res = ((seen - expected) / expected.clamp(min=1e-3)).clamp(-1.0, 1.0).reshape(b, 1, h, w)
         rigid_res = (gn.sample(feat2, uv).reshape(feat1.shape) - feat1).abs().mean(1, keepdim=True)
         flow_res = (warp(feat2, flow) - feat1).abs().mean(1, keepdim=True)
-        x = torch.cat([hidden, flow - rigid, invdepth1, feat1, depth_res, rigid_res, flow_res], 1).detach()
-        return self.moving(x)
+        if self.cfg.pt_conf_inputs == "all":
+            x = torch.cat([hidden, flow - rigid, invdepth1, feat1, depth_res, rigid_res, flow_res], 1)
+        else:
+            x = torch.cat([flow - rigid, invdepth1, depth_res, rigid_res, flow_res], 1)
+        return self.moving(x.detach())
 
     def point_confidence(self, confidence: torch.Tensor, points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
         """(B,N): each point takes the confidence of the cell it projects to in the network view

@@ -66,6 +66,10 @@ class TrainConfig:
     # its running statistics (fine-tuning from a checkpoint), which makes R ranks of batch b train
     # exactly as one process of batch R*b
     batch_norm: str = "sync"
+    # train only the parameters whose names start with one of these (e.g. "point_pose.moving", the
+    # confidence net); the rest keep their weights and BatchNorm statistics, and no gradient flows
+    # through them, so a step costs little more than the forward pass. Empty: train everything
+    train_only: tuple[str, ...] = ()
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     loss: LossConfig = field(default_factory=LossConfig)
 
@@ -288,6 +292,19 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.step, self.path = step, path
 
 
+def _freeze_except(model: torch.nn.Module, prefixes: tuple[str, ...]) -> set[str]:
+    """Stop gradients outside the named parts; returns the names of the modules left as they are."""
+    if not prefixes:
+        return set()
+    if not any(n.startswith(prefixes) for n, _ in model.named_parameters()):
+        raise D3LVOInputError(None, f"train_only {list(prefixes)} names no parameter of this model "
+                                    "(names as in its state dict, e.g. point_pose.moving)")
+    for n, p in model.named_parameters():
+        p.requires_grad_(n.startswith(prefixes))
+    return {n for n, m in model.named_modules() if n and not n.startswith(prefixes)
+            and not any(p.requires_grad for p in m.parameters())}
+
+
 def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
           on_step: Callable[[int, dict], None] | None = None) -> dict:
     """Train; returns the final record (step, losses, validation). `on_step` drives a progress bar."""
@@ -301,6 +318,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
     torch.manual_seed(tc.seed + rank)
 
     model = D3LVO(cfg).to(device)
+    frozen = _freeze_except(model, tuple(tc.train_only))
     criterion = PoseLoss(tc.loss).to(device)
     params = list(model.parameters()) + list(criterion.parameters())
     # s_t, s_q must travel to log(typical error) (about -9 for frame-to-frame rotation): at the
@@ -381,10 +399,10 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                 if step >= end:
                     break
                 ddp_model.train()
-                if tc.batch_norm == "frozen":
-                    for m in model.modules():
-                        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                            m.eval()
+                for name, m in model.named_modules():
+                    if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and (
+                            tc.batch_norm == "frozen" or name in frozen):
+                        m.eval()
                 solver = {k: b[k].to(device) for k in SOLVER_FEEDS} if solver_loss else None
                 with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
                     out = ddp_model(b["rgb1"].to(device), b["rgb2"].to(device), b["depth1"].to(device),

@@ -449,3 +449,44 @@ def test_depth_cache_gives_the_same_samples_and_follows_changed_scans(small_synt
     for k in ("depth2", "image2"):
         assert torch.equal(cached[0][k], changed[k]), k
     assert not torch.equal(cached[0]["depth2"], before)
+
+
+def test_train_only_the_confidence_net_on_evidence(traffic_clip, tmp_path):
+    """[train] train_only = ["point_pose.moving"] with an evidence-only confidence net
+    ([model] pt_conf_inputs = "evidence"): a step moves the confidence net's weights and leaves
+    every other weight and BatchNorm statistic bit for bit as the starting checkpoint has them."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    start = tmp_path / "start.pt"
+    cfg = D3LVOConfig.preset("small", height=128, width=416, pose_head="points", pt_conf_inputs="evidence")
+    torch.manual_seed(0)
+    save_checkpoint(start, D3LVO(cfg), cfg)
+    f = tmp_path / "run.toml"
+    f.write_text(f"""
+[model]
+preset = "small"
+height = 128
+width = 416
+pose_head = "points"
+pt_conf_inputs = "evidence"
+[train]
+data = ["{traffic_clip}"]
+out = "{tmp_path / 'a.pt'}"
+init = "{start}"
+steps = 2
+batch_size = 2
+train_only = ["point_pose.moving"]
+""")
+    r = CliRunner().invoke(app, ["train", "--config", str(f)])
+    assert r.exit_code == 0, r.output
+    before, after = load_checkpoint(start)["model"], load_checkpoint(tmp_path / "a.pt")["model"]
+    moved = {k for k in before if not torch.equal(before[k], after[k])}
+    assert moved and all(k.startswith("point_pose.moving.") for k in moved), sorted(moved)[:5]
+    assert any(k.endswith("weight") for k in moved)
+    # 6 input channels: flow minus rigid flow (2), inverse depth, three residuals
+    assert after["point_pose.moving.net.0.0.weight"].shape[1] == 6
+    f.write_text(f.read_text().replace('["point_pose.moving"]', '["confidence"]').replace("a.pt", "b.pt"))
+    r = CliRunner().invoke(app, ["train", "--config", str(f)])
+    assert r.exit_code == 1 and "names no parameter" in r.output and "Traceback" not in r.output, r.output
