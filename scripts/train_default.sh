@@ -6,7 +6,7 @@
 # Data: synthetic sequences from `d3lvo synth`, motion replayed from the real KITTI GT 00-08
 # (training) and 09-10 (held-out, other seeds). On 2 CPU cores: data ~16 min, then the trainings
 # below side by side, ~100 min in all, then ~40 min for the bundled point head's three trainings;
-# sequences already in $OUT/data are reused.
+# sequences already in $OUT/data are reused; then ~70 min for its confidence net's two trainings.
 # A run cut short resumes: RESUME=1 continues the trainings from their last checkpoints.
 #   GT=path/to/kitti_gt_poses OUT=runs/default bash scripts/train_default.sh
 set -euo pipefail
@@ -35,6 +35,8 @@ done
 val=(--val "$OUT/data/heldout_09")
 common=(--preset small --batch-size 4 --lr 5e-4 --ckpt-every 50 --seed 0 --workers 0)
 resume() { [ "${RESUME:-0}" = 1 ] && [ -f "$1" ] && echo --resume "$1" || true; }
+# a training that starts from other weights: --init those, or --resume its own checkpoint with RESUME=1
+init_or_resume() { [ "${RESUME:-0}" = 1 ] && [ -f "$2" ] && echo --resume "$2" || echo --init "$1"; }
 
 # Side by side, as they were run for the bundled model (the budgets differ; the comparison
 # favours the MLP head, which has more steps than the default's first 1,000):
@@ -88,8 +90,8 @@ drive val_traffic --frames 100 --seed 600 --motion-from "$GT/08.txt" --motion-st
 points=()
 for s in tr_00 tr_00b tr_01 tr_02 tr_04 tr_05 tr_06 tr_08 st_03 st_07; do points+=(--data "$OUT/data/$s"); done
 OMP_NUM_THREADS=1 "$D3LVO" train "${points[@]}" --val "$OUT/data/val_traffic" --out "$OUT/points.pt" \
-  --init "$INIT" --preset small --pose-head points --batch-size 4 --lr 5e-4 --steps 2000 --val-every 400 \
-  --ckpt-every 50 --seed 0 $(resume "$OUT/points.pt")
+  $(init_or_resume "$INIT" "$OUT/points.pt") --preset small --pose-head points --batch-size 4 --lr 5e-4 --steps 2000 --val-every 400 \
+  --ckpt-every 50 --seed 0
 
 # Then the pose loss through the solver (--solver-loss 1: eq. 11 on the solver's own poses,
 # backpropagated into the confidence; flips and rotations off), in two parts: 600 steps on the same
@@ -101,17 +103,31 @@ drive st_d2 --frames 120 --seed 521
 plain st_02 --frames 120 --seed 522 --motion-from "$GT/02.txt" --motion-start 900
 drive st_08 --frames 120 --seed 523 --motion-from "$GT/08.txt" --motion-start 1500
 OMP_NUM_THREADS=1 "$D3LVO" train "${points[@]}" --val "$OUT/data/val_traffic" --out "$OUT/solver.pt" \
-  --init "$OUT/points.pt" --preset small --pose-head points --batch-size 4 --lr 2e-4 --steps 600 --val-every 200 \
-  --ckpt-every 50 --seed 0 --solver-loss 1 $(resume "$OUT/solver.pt")
+  $(init_or_resume "$OUT/points.pt" "$OUT/solver.pt") --preset small --pose-head points --batch-size 4 --lr 2e-4 --steps 600 --val-every 200 \
+  --ckpt-every 50 --seed 0 --solver-loss 1
 more=("${points[@]}")
 for s in st_d1 st_d2 st_02 st_08; do more+=(--data "$OUT/data/$s"); done
 OMP_NUM_THREADS=1 "$D3LVO" train "${more[@]}" --val "$OUT/data/val_traffic" --out "$OUT/solver2.pt" \
-  --init "$OUT/solver.pt" --preset small --pose-head points --batch-size 4 --lr 1.5e-4 --steps 400 --val-every 200 \
-  --ckpt-every 50 --seed 1 --solver-loss 1 $(resume "$OUT/solver2.pt")
+  $(init_or_resume "$OUT/solver.pt" "$OUT/solver2.pt") --preset small --pose-head points --batch-size 4 --lr 1.5e-4 --steps 400 --val-every 200 \
+  --ckpt-every 50 --seed 1 --solver-loss 1
+
+# Last, the confidence net alone, trained anew on the evidence of motion only (scripts/confidence.toml:
+# pt_conf_inputs = "evidence", train_only = ["point_pose.moving"]; everything else keeps the weights
+# above): cross-entropy against the motion masks, 1,500 steps and then continued to 3,000 (the
+# cosine schedule restarts from where 3,000 steps would be), then 1,000 steps of the pose loss
+# through the solver, one thread, ~0.8 and ~1.2 s per step. checkpoints/confidence_step3000.pt and
+# checkpoints/confidence_solver_step1000.pt are their full states.
+OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" --val "$OUT/data/val_traffic" \
+  --out "$OUT/confidence.pt" $(init_or_resume "$OUT/solver2.pt" "$OUT/confidence.pt")
+OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" --val "$OUT/data/val_traffic" \
+  --out "$OUT/confidence.pt" --resume "$OUT/confidence.pt" --steps 3000
+OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" --val "$OUT/data/val_traffic" \
+  --out "$OUT/confidence_solver.pt" $(init_or_resume "$OUT/confidence.pt" "$OUT/confidence_solver.pt") \
+  --steps 1000 --lr 3e-4 --solver-loss 1
 
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
 # measured for the direct tracker (docs/evaluation.md), and export from exactly that file
-.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/solver2.pt', \
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
