@@ -7,8 +7,8 @@ rigidly and by the flow against frame t-1's, beside the inverse depth (with pt_c
 also the flow estimator's state and frame t-1's features, from which it learns appearance and
 place priors that flag static road as moving); it predicts per cell the logit that the cell lies
 on something that moves on its own. It is trained directly against the synthetic drives' motion
-masks (binary cross-entropy, `models.train`). Each LiDAR point of frame t-1 takes the confidence 1 - p(moving) of the cell it
-projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
+masks (binary cross-entropy, `models.train`). Each LiDAR point of frame t-1 takes the confidence
+1 - p(moving) of the cell it projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
 static scene the confidence stays near 1 and the pose is the classical one; a truck that keeps
 the ego speed gets weight near 0 instead of pulling the pose along.
 
