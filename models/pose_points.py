@@ -8,9 +8,10 @@ also the flow estimator's state and frame t-1's features, from which it learns a
 place priors that flag static road as moving); it predicts per cell the logit that the cell lies
 on something that moves on its own. It is trained directly against the synthetic drives' motion
 masks (binary cross-entropy, `models.train`). Each LiDAR point of frame t-1 takes the confidence
-1 - p(moving) of the cell it projects to, and `point_solver.solve` runs the classical direct tracker with those weights: on a
-static scene the confidence stays near 1 and the pose is the classical one; a truck that keeps
-the ego speed gets weight near 0 instead of pulling the pose along.
+1 - p(moving) of the cell it projects to, and `point_solver.solve` runs the classical direct
+tracker with those weights: on a static scene the confidence stays near 1 and the pose is the
+classical one; a truck that keeps the ego speed gets weight near 0 instead of pulling the pose
+along.
 
 Why not regress the pose (the paper's MLP) or weight cells of a half-size view: measured in
 docs/evaluation.md, both lost to the classical tracker, whose only weakness is that it cannot
