@@ -142,7 +142,7 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
 
 
 def single_thread_stage(manifest: dict, stage: str) -> bool:
-    """The point solver's flow+pose graph runs on one thread: its ~8,400 nodes per frame are 6x6
+    """The point solver's flow+pose graph runs on one thread: its ~7,500 nodes per frame are 6x6
     matrices and lists of 2,048 points, too small to split; a second thread costs more than it
     gains (measured with `d3lvo bench`, docs/performance.md)."""
     inputs = manifest.get("stages", {}).get(stage, {}).get("inputs", [])

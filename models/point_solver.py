@@ -10,7 +10,9 @@ weight per point, its confidence; with every confidence 1 this is exactly the cl
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
 Standard ONNX ops only: Pad + Conv for pyrDown, GridSample for the bilinear samples, TopK for the
-median, MatMul for the normal equations and Gauss-Jordan elimination for the 6x6 solve.
+median, MatMul for the normal equations and Gauss-Jordan elimination for the 6x6 solve. A step
+is ~140 graph ops, and the 45 steps are most of the flow+pose stage's ~7,500: its time is per-op
+overhead, not arithmetic, so `align_level` is written for few ops (docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
 
@@ -42,11 +44,15 @@ def pyr_down(x: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.pad(x, (2, 2, 2, 2), mode="reflect"), k.view(1, 1, 5, 5), stride=2)
 
 
-def with_gradients(g: torch.Tensor) -> torch.Tensor:
-    """(B,1,H,W) -> (B,3,H,W): grey, d/du, d/dv by central differences with replicated edges."""
+def with_gradients(g: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,1,H,W) -> (B,3,H,W): grey, d/du, d/dv by central differences with replicated edges;
+    the derivatives times scale (B,2) where given (the focal lengths, folded into the difference's
+    0.5 rather than a pass over the full image)."""
     p = F.pad(g, (1, 1, 1, 1), mode="replicate")
-    gx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * 0.5
-    gy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * 0.5
+    half = 0.5 if scale is None else 0.5 * scale[:, :, None, None]
+    hx, hy = (half, half) if scale is None else (half[:, :1], half[:, 1:])
+    gx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * hx
+    gy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * hy
     return torch.cat([g, gx, gy], 1)
 
 
@@ -70,25 +76,29 @@ def project(X: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
 
 def masked_median(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """np.median of a (B,N) over mask > 0 (mean of the two middle values for an even count)."""
-    big = a.detach().abs().amax(-1, keepdim=True) + 1.0
-    v, _ = torch.sort(torch.where(mask > 0, a, big), dim=-1)
-    n = mask.sum(-1, keepdim=True).clamp(min=1.0)
-    lo = torch.floor((n - 1) * 0.5).long()
-    hi = torch.floor(n * 0.5).long().clamp(max=a.shape[-1] - 1)
-    return 0.5 * (torch.gather(v, -1, lo) + torch.gather(v, -1, hi))
+    """np.median along the last axis of a over mask > 0 (mean of the two middle values for an even
+    count): (..., N) -> (..., 1). Masked-out values sort last behind a constant far above any
+    residual of [0, 1] images; the middle indices floor((n - 1) / 2), floor(n / 2) never pass N // 2,
+    so the smallest N // 2 + 1 values, a partial sort, hold both."""
+    v, _ = torch.topk(torch.where(mask > 0, a, _const(1e9, a)), int(a.shape[-1]) // 2 + 1, dim=-1, largest=False)
+    middle = torch.floor((mask.sum(-1, keepdim=True) + _const([-1.0, 0.0], a)) * 0.5).clamp(min=0).long()
+    return torch.gather(v, -1, middle).mean(-1, keepdim=True)
 
 
 def huber_scale_weights(r: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Huber weights with the threshold at HUBER_K robust sigmas of the residuals under mask."""
+    """Huber weights with the threshold at HUBER_K robust sigmas of the residuals under mask:
+    min(1, k / |r|), which is 1 where |r| <= k."""
     a = r.abs()
     k = (HUBER_K * MAD_TO_SIGMA * masked_median(a, mask)).clamp(min=1e-6)
-    return torch.where(a <= k, torch.ones_like(a), k / a.clamp(min=1e-12))
+    return (k / a.clamp(min=1e-12)).clamp(max=1.0)
 
 
-# X x a = (X outer a).flatten() @ LEVI_CIVITA (9, 3); [omega]x.flatten() = omega @ SKEW (3, 9). Written
-# out as literals: built with in-place writes, the tracer would record every write as a graph op
-LEVI_CIVITA = [[0, 0, 0], [0, 0, 1], [0, -1, 0], [0, 0, -1], [0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, 0, 0]]
+# X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
+# other way round; [omega]x.flatten() = SKEW^T omega. Written out as literals: built with in-place
+# writes, the tracer would record every write as a graph op
+ROLL = [[0, 1, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1], [1, 0, 0], [0, 1, 0]]
+ROLL_BACK = ROLL[3:] + ROLL[:3]
+DIFF = [[1, 0, 0, -1, 0, 0], [0, 1, 0, 0, -1, 0], [0, 0, 1, 0, 0, -1]]
 SKEW = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]]
 
 
@@ -96,78 +106,100 @@ def _const(rows, like: torch.Tensor) -> torch.Tensor:
     return torch.tensor(rows, dtype=like.dtype, device=like.device)
 
 
-def _eye(n: int, like: torch.Tensor) -> torch.Tensor:
-    return _const([[float(i == j) for j in range(n)] for i in range(n)], like)
+def _eye(n: int, like: torch.Tensor, m: int | None = None) -> torch.Tensor:
+    return _const([[float(i == j) for j in range(m or n)] for i in range(n)], like)
 
 
-def gauss_jordan_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve A x = b for symmetric positive definite (B,n,n) A and (B,n,1) b: Gauss-Jordan on
-    [A | b] without pivoting (stable for SPD, as LDL^T), a handful of whole-matrix ops per pivot
-    instead of an unrolled Cholesky's scalar ones (each op of a graph costs microseconds)."""
-    n = A.shape[-1]
-    Ab = torch.cat([A, b], -1)
-    eye = _eye(n, A)
+def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
+    """[A | b] (B,n,n+1) -> x (B,n,1) for symmetric positive definite A: Gauss-Jordan without
+    pivoting (stable for SPD, as LDL^T), seven whole-matrix ops per pivot instead of an unrolled
+    Cholesky's scalar ones (each op of a graph costs microseconds)."""
+    n = Ab.shape[-2]
+    eye = _eye(n, Ab)
     for k in range(n):
-        row = Ab[:, k : k + 1, :] / Ab[:, k : k + 1, k : k + 1]
-        Ab = Ab - (Ab[:, :, k : k + 1] - eye[:, k : k + 1]) * row
+        row = Ab[:, k : k + 1, :]
+        Ab = Ab - (Ab[:, :, k : k + 1] - eye[:, k : k + 1]) * (row / row[:, :, k : k + 1])
     return Ab[:, :, n:]
 
 
+def gauss_jordan_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Solve A x = b for SPD (B,n,n) A and (B,n,1) b."""
+    return gauss_jordan(torch.cat([A, b], -1))
+
+
 def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:
-    """(B,3) -> (B,3,3): Rodrigues with sin(t)/t and (1-cos t)/t^2 as their series to t^4, exact
-    to float64 rounding below 0.05 rad and to 1e-7 at 0.3 rad; a solver step is far smaller."""
-    th2 = (omega * omega).sum(-1, keepdim=True).unsqueeze(-1)
-    K = (omega @ _const(SKEW, omega)).reshape(-1, 3, 3)
-    a = 1.0 - th2 / 6.0 + th2 * th2 / 120.0
-    b = 0.5 - th2 / 24.0 + th2 * th2 / 720.0
-    return _eye(3, omega) + a * K + b * (K @ K)
+    """(B,3) or (B,3,1) -> (B,3,3): Rodrigues with sin(t)/t and (1-cos t)/t^2 as their series to
+    t^4, exact to float64 rounding below 0.05 rad and to 1e-7 at 0.3 rad; a solver step is far
+    smaller."""
+    if omega.dim() == 2:
+        omega = omega.unsqueeze(-1)
+    th2 = (omega * omega).sum(1, keepdim=True)  # (B,1,1)
+    K = (_const(SKEW, omega).transpose(0, 1) @ omega).reshape(-1, 3, 3)
+    ab = _const([1.0, 0.5], omega) + th2 * (_const([-1.0 / 6.0, -1.0 / 24.0], omega)
+                                           + th2 * _const([1.0 / 120.0, 1.0 / 720.0], omega))  # (B,1,2)
+    return _eye(3, omega) + ab[..., :1] * K + ab[..., 1:] * (K @ K)
+
+
+def _grid_intrinsics(K: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """(B,3,3) G with G X = z (GridSample's x, y, 1) for a camera point X: the intrinsics K (B,4)
+    followed by GridSample's pixel -> [-1, 1] map (align_corners), size (w, h) a graph tensor."""
+    s = 2.0 / (size - 1.0)  # (2,)
+    f, c = K[:, 0:2] * s, K[:, 2:4] * s - 1.0  # (B,2)
+    zero = torch.zeros_like(K[:, :1])
+    one = torch.ones_like(K[:, :1])
+    return torch.stack([torch.cat([f[:, :1], zero, c[:, :1]], 1), torch.cat([zero, f[:, 1:], c[:, 1:]], 1),
+                        torch.cat([zero, zero, one], 1)], 1)
 
 
 def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
                 K: torch.Tensor, weight: torch.Tensor, median_mask: torch.Tensor, iterations: int,
                 s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to `iterations` Gauss-Newton steps of sum_n weight_n huber(I_t(pi(R X_n + t)) - ref_n).
-    R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- t dR^T + rho."""
+    R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- dR t + rho.
+    stack (B,3,h,w): frame t's grey and its derivatives times fx, fy (`with_gradients(grey, K[:, :2])`).
+    Laid out for a short graph (each op costs microseconds, whatever its size): points along the
+    last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
+    GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]."""
     dtype = X.dtype
     size = torch._shape_as_tensor(stack)[2:].to(dtype).flip(0)  # (w, h)
-    wh1 = size - 1.0
-    to_grid = 2.0 / wh1  # pixel -> GridSample's [-1, 1] (align_corners)
-    f = K[:, None, 0:2]  # (B,1,2) fx, fy
-    c = K[:, None, 2:4]
-    E = _const(LEVI_CIVITA, X)
-    eye6 = _eye(6, X)
-    active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
+    G = _grid_intrinsics(K, size)
+    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
+    P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
+    ref = ref.unsqueeze(1)  # (B,1,N)
+    weight = weight.unsqueeze(1)
     w_ok = (weight > 0).to(dtype)
+    median_mask = median_mask.unsqueeze(1)
+    roll, roll_back, diff = _const(ROLL, X), _const(ROLL_BACK, X), _const(DIFF, X)
+    diagonal = _const([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
+    unit, one = _eye(6, X, 7) > 0, _const(1.0, X)
+    pad_one, last_one = _eye(6, X, 7), _const([0.0] * 6 + [1.0], X)  # (d^T, 1) = d^T pad_one + last_one
+    to_last = _const([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
+    active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     for _ in range(iterations):
-        Xt = X @ R.transpose(1, 2) + t
-        xy, z = Xt[..., :2], Xt[..., 2:]
-        zi = 1.0 / z.clamp(min=0.1)
-        uv = f * xy * zi + c
-        inside = (uv.amin(-1) >= 0).to(dtype) * ((uv - wh1).amax(-1) <= 0).to(dtype)
-        ok = inside * (z[..., 0] > 0.1).to(dtype) * w_ok
-        active = active * (ok.sum(-1, keepdim=True) >= 12).to(dtype).unsqueeze(-1)  # too few: stop, as the tracker
-        smp = F.grid_sample(stack, (uv * to_grid - 1.0).unsqueeze(1), mode="bilinear", padding_mode="zeros",
-                            align_corners=True)[:, :, 0].transpose(1, 2)  # (B,N,3)
-        r = smp[..., 0] - ref
-        G = smp[..., 1:] * f  # (B,N,2) image gradient times focal length
-        a = torch.cat([G * zi, -(G * xy).sum(-1, keepdim=True) * zi * zi], -1)  # d r / d X'
-        J = torch.cat([a, (Xt.unsqueeze(-1) * a.unsqueeze(-2)).flatten(2) @ E], -1)  # [a, X' x a]
-        Jw = J * (ok * weight * huber_scale_weights(r, ok * median_mask)).unsqueeze(-1)
-        JwT = Jw.transpose(1, 2)
-        H = JwT @ J
-        g = JwT @ r.unsqueeze(-1)  # (B,6,1)
-        diag = (H * eye6).sum(-1, keepdim=True)  # (B,6,1)
+        Xt = P @ Xh  # (B,3,N)
+        z = Xt[:, 2:3]
+        zi = torch.reciprocal(z.clamp(min=0.1))
+        grid = (G @ Xt)[:, :2] * zi  # (B,2,N) in [-1, 1] inside the image
+        ok = ((grid.abs().amax(1, keepdim=True) <= 1.0) & (z > 0.1)).to(dtype) * w_ok
+        active = active * (ok.sum(-1, keepdim=True) >= 12).to(dtype)  # too few: stop, as the tracker
+        smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
+                            align_corners=True)[:, :, 0]  # (B,3,N)
+        nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
+        Gz = smp[:, 1:] * zi
+        a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
+        Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
+        w = ok * weight * huber_scale_weights(nr, ok * median_mask)
+        Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # scaled to a unit diagonal first: translation and rotation columns differ by orders of
-        # magnitude, which float32 elimination without pivoting would not survive
-        d = 1.0 / torch.sqrt(diag * (1.0 + s.damping) + 1e-12)
-        # a stopped level (no points left, say an empty scan) solves I xi = 0 instead of 0/0
-        Hs = H * d * d.transpose(1, 2) + eye6 * (s.damping * diag * d * d + (1.0 - active))
-        xi = -(d * gauss_jordan_solve(Hs, d * g))[..., 0] * active[:, 0]
-        dR = so3_exp_small(xi[:, 3:])
-        R = dR @ R
-        t = t @ dR.transpose(1, 2) + xi[:, None, :3]
-        active = active * (xi.abs().amax(-1, keepdim=True) >= s.stop_step).to(dtype).unsqueeze(-1)
-    return R, t
+        # magnitude, which float32 elimination without pivoting would not survive. The damped
+        # diagonal (1 + damping) diag(H) + 1e-12 scales to exactly 1, so it is written as 1; a
+        # stopped level (no points left, say an empty scan) then solves I xi = 0 instead of 0/0
+        d = torch.pow(Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12, -0.5)  # (B,6,1)
+        Hs = torch.where(unit, one, Hg * (d * (d.transpose(1, 2) @ pad_one + last_one)))
+        xi = d * gauss_jordan(Hs) * active  # (B,6,1)
+        P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
+        active = active * (xi.abs().amax(1, keepdim=True) >= s.stop_step).to(dtype)
+    return P[:, :, :3], P[:, :, 3:].transpose(1, 2)
 
 
 @full_precision
@@ -190,6 +222,6 @@ def solve(image1: torch.Tensor, image2: torch.Tensor, points: torch.Tensor, weig
     for i, lvl in enumerate(reversed(range(len(s.iterations)))):
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
         ref = sample_at(pyr1[lvl], project(points, Kl)[0])[:, 0]
-        R, t = align_level(R, t, points, ref, with_gradients(pyr2[lvl]), Kl, weight, median_mask, s.iterations[i], s)
+        R, t = align_level(R, t, points, ref, with_gradients(pyr2[lvl], Kl[:, :2]), Kl, weight, median_mask, s.iterations[i], s)
         out.append(gn.invert(torch.cat([torch.cat([R, t.transpose(1, 2)], -1), bottom], 1)))
     return out

@@ -38,6 +38,9 @@ def test_pyramid_and_gradients_are_cv2s():
     g = with_gradients(torch.from_numpy(img)[None, None])[0].numpy()
     gx, gy = gradients(img)
     assert np.abs(g[1] - gx).max() < 1e-6 and np.abs(g[2] - gy).max() < 1e-6
+    scaled = with_gradients(torch.from_numpy(img)[None, None], torch.tensor([[700.0, 650.0]]))[0].numpy()
+    assert np.allclose(scaled[0], img) and np.allclose(scaled[1], 700 * gx, atol=1e-4) \
+        and np.allclose(scaled[2], 650 * gy, atol=1e-4)  # the focal lengths folded in
 
 
 def test_small_ops_against_numpy():
