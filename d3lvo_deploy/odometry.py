@@ -77,6 +77,10 @@ class Odometry:
         self.keep_outputs = False  # keep the last frame's intermediate tensors in `last` (for --viz)
         self.last: dict = {}
         self.points = point_config(self.model.config) if self.model.point_solver else None
+        # a graph that takes the solver's image pyramids (rather than building them) gets them from
+        # `prepare`, made once per frame
+        takes_pyramids = "stack2_p0" in self.model.input_names("flowpose")
+        self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         self.reset()
 
     @property
@@ -116,7 +120,8 @@ class Odometry:
         inv = pre.invdepth_input(scan)
         solver = None
         if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
-            solver = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points)
+            solver = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points,
+                                    self.pyramid_levels)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
 
     def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:

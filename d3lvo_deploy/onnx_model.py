@@ -21,7 +21,8 @@ from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import load_manifest
 
-# the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS)
+# the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
+# point solver's image pyramids `image1_pK`, `stack2_pK` too)
 CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics")
 
 
@@ -31,7 +32,7 @@ def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict |
     Gauss-Newton head's `intrinsics` and `init_pose` come from `camera`."""
     feeds = {}
     for name in input_names:
-        if name in CAMERA_AND_SOLVER_INPUTS:
+        if name in CAMERA_AND_SOLVER_INPUTS or name.startswith(("image1_p", "stack2_p")):
             if camera is None or name not in camera:
                 raise ValueError(f"the flow+pose graph needs {name!r} (a Gauss-Newton or point pose head)")
             feeds[name] = np.ascontiguousarray(camera[name], dtype=np.float32)

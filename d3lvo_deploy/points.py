@@ -116,21 +116,45 @@ def point_config(model_config: dict) -> PointConfig:
                        max_depth=model_config["max_depth"], capacity=model_config["pt_capacity"])
 
 
+def solver_pyramid(grey: np.ndarray, levels: int, grads: tuple[np.ndarray, np.ndarray] | None = None) -> list[np.ndarray]:
+    """Finest first: (3, h, w) float32 grey, d/du, d/dv at `levels` pyrDown levels, level 0 the
+    image itself; what `models.point_solver.image_pyramids` computes in torch. Made once per frame
+    (frame t's is frame t-1's at the next pair), beside the network in a pipeline, instead of in
+    the graph at every pair. `grads`: level 0's `gradients(grey)` where the caller has them."""
+    out, g = [], grey
+    for k in range(levels):
+        if k:
+            g = cv2.pyrDown(g)
+        gx, gy = grads if (k == 0 and grads is not None) else gradients(g)
+        out.append(np.stack([g, gx, gy]))
+    return out
+
+
 @dataclass
 class SolverFrame:
-    """What the point solver needs of one frame: its grey image and its textured LiDAR points."""
+    """What the point solver needs of one frame: its grey image and its textured LiDAR points, and
+    for a graph that takes them, its image pyramid."""
     grey: np.ndarray  # (H, W) float32 in [0, 1], the camera's full resolution
     points: np.ndarray  # (M, 3) image_2 camera coordinates
+    pyramid: list[np.ndarray] | None = None  # `solver_pyramid(grey, levels)`
 
     @classmethod
     def of(cls, image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
-           cfg: PointConfig) -> "SolverFrame":
+           cfg: PointConfig, levels: int = 0) -> "SolverFrame":
         grey = grey_image(image)
-        return cls(grey, textured_points(scan, T_cam_velo, K, grey, cfg))
+        grads = gradients(grey)
+        points = textured_points(scan, T_cam_velo, K, grey, cfg, np.dstack(grads))
+        return cls(grey, points, solver_pyramid(grey, levels, grads) if levels else None)
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:
-    """The flow+pose graph's point-solver inputs for the pair (prev, cur); K: image_2's 3x3."""
+    """The flow+pose graph's point-solver inputs for the pair (prev, cur); K: image_2's 3x3. With
+    pyramids, both frames' levels (`image1_pK` frame t-1's grey, `stack2_pK` frame t's grey and
+    derivatives); the grey images themselves for graphs that build their own pyramids."""
     pts, mask = pad_points(prev.points, capacity)
-    return {"image1": prev.grey[None, None], "image2": cur.grey[None, None], "points1": pts, "point_mask1": mask,
-            "image_intrinsics": np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]], np.float32)}
+    feeds = {"image1": prev.grey[None, None], "image2": cur.grey[None, None], "points1": pts, "point_mask1": mask,
+             "image_intrinsics": np.array([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]]], np.float32)}
+    if prev.pyramid is not None and cur.pyramid is not None:
+        for k, (a, b) in enumerate(zip(prev.pyramid, cur.pyramid)):
+            feeds[f"image1_p{k}"], feeds[f"stack2_p{k}"] = a[None, :1], b[None]
+    return feeds

@@ -26,6 +26,7 @@ from models.checkpoint import build_model, load_checkpoint
 from models.config import check_solver_settings
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
+from models.point_solver import image_pyramids, pyramid_input_names
 from models.pose_gn import nominal_intrinsics
 
 from .flops import graph_flops
@@ -106,16 +107,19 @@ def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str
     u, v = torch.rand(1, n, generator=g) * (W - 1), torch.rand(1, n, generator=g) * (H - 1)
     pts = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[0, 3]) / K[0, 1] * z, z], -1)
     mask = (torch.arange(n) < n // 2).float()[None]
-    return {"image1": image, "image2": torch.roll(image, 1, -1), "points1": pts, "point_mask1": mask,
+    grey1, stack2 = image_pyramids(image, torch.roll(image, 1, -1), len(model.cfg.pt_iters))
+    names1, names2 = pyramid_input_names(len(model.cfg.pt_iters))
+    return {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
             "image_intrinsics": K}
 
 
 def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> None:
     names = list(module.input_names) + list(module.output_names)
     dynamic = {n: {0: "batch"} for n in names} if dynamic_batch else {}
-    for n in ("image1", "image2"):  # the point solver reads the camera's images at their own size
-        if n in module.input_names:
-            dynamic.setdefault(n, {}).update({2: "image_height", 3: "image_width"})
+    for n in module.input_names:  # the point solver reads the camera's images at their own size
+        if n.startswith(("image1_p", "stack2_p")):
+            k = n.rsplit("_p", 1)[1]
+            dynamic.setdefault(n, {}).update({2: f"image_height_p{k}", 3: f"image_width_p{k}"})
     dynamic = dynamic or None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below

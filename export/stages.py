@@ -12,15 +12,22 @@ from __future__ import annotations
 from torch import nn
 
 from models.d3lvo import D3LVO
+from models.point_solver import pyramid_input_names
 
 
 # inputs of the flow+pose graph that are not encoder outputs (Gauss-Newton head only): the camera
 # (fx, fy, cx, cy at the network input, (B,4)) and the starting relative pose ((B,4,4), the
 # previous pair's motion at run time)
 CAMERA_INPUTS = ("intrinsics", "init_pose")
-# and the point solver's (pose_head="points"): both frames' grey images at the camera's resolution
-# (height and width dynamic), frame t-1's LiDAR point list with its mask, image_2's intrinsics
-SOLVER_INPUTS = ("image1", "image2", "points1", "point_mask1", "image_intrinsics")
+# and the point solver's (pose_head="points"): both frames' image pyramids at the camera's resolution
+# (frame t-1's grey, frame t's grey and derivatives; heights and widths dynamic; their names from
+# `point_solver.pyramid_input_names`), frame t-1's LiDAR point list with its mask, image_2's intrinsics
+SOLVER_INPUTS = ("points1", "point_mask1", "image_intrinsics")
+
+
+def solver_input_names(model: D3LVO) -> list[str]:
+    grey1, stack2 = pyramid_input_names(len(model.cfg.pt_iters))
+    return grey1 + stack2 + list(SOLVER_INPUTS)
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:
@@ -44,7 +51,7 @@ def flowpose_input_names(model: D3LVO) -> list[str]:
     if cfg.gn_lidar:
         names += [f"lidar1_l{lvl}" for lvl in cfg.gn_levels]
     if cfg.point_solver:  # frame t's depth too: the confidence compares it with the start's prediction
-        return names + [f"invdepth2_l{cfg.flow_levels[-1]}"] + list(CAMERA_INPUTS) + list(SOLVER_INPUTS)
+        return names + [f"invdepth2_l{cfg.flow_levels[-1]}"] + list(CAMERA_INPUTS) + solver_input_names(model)
     return names + (list(CAMERA_INPUTS) if cfg.geometric else [])
 
 
@@ -105,7 +112,7 @@ class FlowPoseStage(nn.Module):
     def forward(self, *tensors):
         byname = dict(zip(self.input_names, tensors))
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
-        solver = {k: byname[k] for k in SOLVER_INPUTS} if self.model.cfg.point_solver else None
+        solver = {k: byname[k] for k in solver_input_names(self.model)} if self.model.cfg.point_solver else None
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
                                    levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))

@@ -9,10 +9,11 @@ the unrolled graph computes what a loop with `break` computes). The network's on
 weight per point, its confidence; with every confidence 1 this is exactly the classical tracker
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
-Standard ONNX ops only: Pad + Conv for pyrDown, GridSample for the bilinear samples, TopK for the
-median, MatMul for the normal equations and Gauss-Jordan elimination for the 6x6 solve. A step
-is ~140 graph ops, and the 45 steps are most of the flow+pose stage's ~7,500: its time is per-op
-overhead, not arithmetic, so `align_level` is written for few ops (docs/performance.md).
+Standard ONNX ops only: the image pyramids are inputs (`image_pyramids`; cv2 at run time),
+GridSample does the bilinear samples, TopK the median, MatMul the normal equations and
+Gauss-Jordan elimination the 6x6 solve. A step is ~140 graph ops, and the 45 steps are most of
+the flow+pose stage's nodes: its time is per-op overhead, not arithmetic, so `align_level` is
+written for few ops (docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
 
@@ -44,15 +45,11 @@ def pyr_down(x: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.pad(x, (2, 2, 2, 2), mode="reflect"), k.view(1, 1, 5, 5), stride=2)
 
 
-def with_gradients(g: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,1,H,W) -> (B,3,H,W): grey, d/du, d/dv by central differences with replicated edges;
-    the derivatives times scale (B,2) where given (the focal lengths, folded into the difference's
-    0.5 rather than a pass over the full image)."""
+def with_gradients(g: torch.Tensor) -> torch.Tensor:
+    """(B,1,H,W) -> (B,3,H,W): grey, d/du, d/dv by central differences with replicated edges."""
     p = F.pad(g, (1, 1, 1, 1), mode="replicate")
-    half = 0.5 if scale is None else 0.5 * scale[:, :, None, None]
-    hx, hy = (half, half) if scale is None else (half[:, :1], half[:, 1:])
-    gx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * hx
-    gy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * hy
+    gx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * 0.5
+    gy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * 0.5
     return torch.cat([g, gx, gy], 1)
 
 
@@ -156,13 +153,14 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
                 s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to `iterations` Gauss-Newton steps of sum_n weight_n huber(I_t(pi(R X_n + t)) - ref_n).
     R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- dR t + rho.
-    stack (B,3,h,w): frame t's grey and its derivatives times fx, fy (`with_gradients(grey, K[:, :2])`).
+    stack (B,3,h,w): frame t's grey and its derivatives (`with_gradients`).
     Laid out for a short graph (each op costs microseconds, whatever its size): points along the
     last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
     GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]."""
     dtype = X.dtype
     size = torch._shape_as_tensor(stack)[2:].to(dtype).flip(0)  # (w, h)
     G = _grid_intrinsics(K, size)
+    f = K[:, 0:2, None]  # (B,2,1)
     Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
     P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
     ref = ref.unsqueeze(1)  # (B,1,N)
@@ -185,7 +183,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
         smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
                             align_corners=True)[:, :, 0]  # (B,3,N)
         nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
-        Gz = smp[:, 1:] * zi
+        Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
         Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
         w = ok * weight * huber_scale_weights(nr, ok * median_mask)
@@ -202,18 +200,33 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     return P[:, :, :3], P[:, :, 3:].transpose(1, 2)
 
 
+def pyramid_input_names(levels: int) -> tuple[list[str], list[str]]:
+    """The flow+pose graph's names for `image_pyramids`' tensors, finest first (what
+    `d3lvo_deploy.points.solver_feeds` feeds)."""
+    return [f"image1_p{k}" for k in range(levels)], [f"stack2_p{k}" for k in range(levels)]
+
+
+def image_pyramids(image1: torch.Tensor, image2: torch.Tensor, levels: int) -> tuple[list, list]:
+    """The solver's image inputs from both frames' (B,1,H,W) grey images, finest first: frame t-1's
+    grey and frame t's grey + derivatives (B,3,h,w) at `levels` pyrDown levels. At run time
+    `d3lvo_deploy.points.solver_pyramid` computes the same with cv2, once per frame (frame t's is
+    frame t-1's at the next pair), so that the graph does no full-resolution image work."""
+    grey1, grey2 = [image1], [image2]
+    for _ in range(levels - 1):
+        grey1.append(pyr_down(grey1[-1]))
+        grey2.append(pyr_down(grey2[-1]))
+    return grey1, [with_gradients(g) for g in grey2]
+
+
 @full_precision
-def solve(image1: torch.Tensor, image2: torch.Tensor, points: torch.Tensor, weight: torch.Tensor,
-          K: torch.Tensor, init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None):
-    """image1, image2: (B,1,H,W) grey [0,1] of frames t-1 and t at the camera's resolution;
+def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor,
+          init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None):
+    """grey1, stack2 (`image_pyramids`): frame t-1's grey (B,1,h,w) and frame t's grey and
+    derivatives (B,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution;
     points (B,N,3) frame t-1's points in camera coordinates; weight (B,N): the mask times the
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
     Returns the relative pose A after each level, coarse to fine: list of (B,4,4)."""
-    pyr1, pyr2 = [image1], [image2]
-    for _ in range(len(s.iterations) - 1):
-        pyr1.append(pyr_down(pyr1[-1]))
-        pyr2.append(pyr_down(pyr2[-1]))
     median_mask = (weight > 0.5).to(points.dtype) if median_mask is None else median_mask
     M = gn.invert(init)
     R, t = M[:, :3, :3], M[:, :3, 3].unsqueeze(1)
@@ -221,7 +234,7 @@ def solve(image1: torch.Tensor, image2: torch.Tensor, points: torch.Tensor, weig
     out = []
     for i, lvl in enumerate(reversed(range(len(s.iterations)))):
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
-        ref = sample_at(pyr1[lvl], project(points, Kl)[0])[:, 0]
-        R, t = align_level(R, t, points, ref, with_gradients(pyr2[lvl], Kl[:, :2]), Kl, weight, median_mask, s.iterations[i], s)
+        ref = sample_at(grey1[lvl], project(points, Kl)[0])[:, 0]
+        R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         out.append(gn.invert(torch.cat([torch.cat([R, t.transpose(1, 2)], -1), bottom], 1)))
     return out

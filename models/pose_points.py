@@ -28,7 +28,7 @@ from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
 from .layers import conv
-from .point_solver import SolverSettings, project, solve
+from .point_solver import SolverSettings, image_pyramids, project, pyramid_input_names, solve
 
 
 class MovingLogits(nn.Module):
@@ -104,8 +104,9 @@ class PointPose(nn.Module):
                 invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, init: torch.Tensor,
                 solver: dict | None) -> dict:
         """Tensors at the finest flow level; K (B,4) of the network view; init (B,4,4) the start.
-        `solver`: image1, image2 (B,1,H,W) grey at the camera's resolution, points1 (B,N,3),
-        point_mask1 (B,N), image_intrinsics (B,4); without it (training) only the logits."""
+        `solver`: both frames' image pyramids (`pyramid_input_names`; the exported graph's inputs)
+        or image1, image2 (B,1,H,W) grey at the camera's resolution (training), points1 (B,N,3),
+        point_mask1 (B,N), image_intrinsics (B,4); without it only the logits."""
         logits = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init)
         confidence = torch.sigmoid(-logits)
         out = {"moving_logits": logits, "confidence": [confidence]}
@@ -117,8 +118,12 @@ class PointPose(nn.Module):
         if self.cfg.pt_conf_full < 1:
             conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
-        levels = solve(solver["image1"], solver["image2"], solver["points1"], weight, solver["image_intrinsics"],
-                       init, self.settings)
+        grey1, stack2 = pyramid_input_names(len(self.settings.iterations))
+        if grey1[0] in solver:
+            pyramids = [solver[n] for n in grey1], [solver[n] for n in stack2]
+        else:
+            pyramids = image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
+        levels = solve(*pyramids, solver["points1"], weight, solver["image_intrinsics"], init, self.settings)
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out

@@ -12,10 +12,11 @@ torch = pytest.importorskip("torch")
 
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry  # noqa: E402
 from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle  # noqa: E402
-from d3lvo_deploy.points import PointConfig, gradients, grey_image, pad_points, textured_points  # noqa: E402
+from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
+                                 textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
-from models.point_solver import (SolverSettings, gauss_jordan_solve, masked_median, pyr_down, so3_exp_small,  # noqa: E402
-                                 solve, with_gradients)
+from models.point_solver import (SolverSettings, gauss_jordan_solve, image_pyramids, masked_median, pyr_down,  # noqa: E402
+                                 so3_exp_small, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
@@ -38,9 +39,19 @@ def test_pyramid_and_gradients_are_cv2s():
     g = with_gradients(torch.from_numpy(img)[None, None])[0].numpy()
     gx, gy = gradients(img)
     assert np.abs(g[1] - gx).max() < 1e-6 and np.abs(g[2] - gy).max() < 1e-6
-    scaled = with_gradients(torch.from_numpy(img)[None, None], torch.tensor([[700.0, 650.0]]))[0].numpy()
-    assert np.allclose(scaled[0], img) and np.allclose(scaled[1], 700 * gx, atol=1e-4) \
-        and np.allclose(scaled[2], 650 * gy, atol=1e-4)  # the focal lengths folded in
+
+
+def test_runtime_pyramids_are_the_graphs():
+    """The runtime's cv2 pyramids (the exported graph's inputs) are what the torch solver builds
+    from the two grey images, level by level, on an odd-sized image."""
+    rng = np.random.default_rng(5)
+    img1, img2 = (rng.uniform(size=(45, 71)).astype(np.float32) for _ in range(2))
+    grey1, stack2 = image_pyramids(torch.from_numpy(img1)[None, None], torch.from_numpy(img2)[None, None], 3)
+    ours1, ours2 = solver_pyramid(img1, 3), solver_pyramid(img2, 3)
+    assert [a.shape for a in ours2] == [(3, 45, 71), (3, 23, 36), (3, 12, 18)]
+    for k in range(3):
+        assert np.abs(ours1[k][:1] - grey1[k][0].numpy()).max() < 1e-6
+        assert np.abs(ours2[k] - stack2[k][0].numpy()).max() < 1e-6
 
 
 def test_small_ops_against_numpy():
@@ -75,7 +86,7 @@ def test_recovers_a_known_motion_on_a_textured_plane():
     A = make_se3(axis_angle_to_rot([0.01, -0.03, 0.005]), [0.1, -0.05, 0.9])
     calib, _, (g0, g1, pts, mask), X = _plane_inputs(A)
     assert len(X) > 500
-    est = solve(g0, g1, pts, mask, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1][0].numpy()
+    est = solve(*image_pyramids(g0, g1, 3), pts, mask, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1][0].numpy()
     t_err = np.linalg.norm(est[:3, 3] - A[:3, 3])
     r_err = np.degrees(rotation_angle(est[:3, :3].T @ A[:3, :3]))
     assert t_err < 1e-3 and r_err < 0.005
@@ -94,10 +105,10 @@ def test_zero_weight_points_are_ignored():
     g1m = _t(grey_image(moved))[None, None]
     K, init = _k(calib.K2), _t(np.eye(4))[None]
     err = lambda M: float(np.linalg.norm(M[0, :3, 3].numpy() - A[:3, 3]))  # noqa: E731
-    all_weighted = err(solve(g0, g1m, pts, mask, K, init, SolverSettings())[-1])
+    all_weighted = err(solve(*image_pyramids(g0, g1m, 3), pts, mask, K, init, SolverSettings())[-1])
     keep = mask.clone()
     keep[0, : len(X)] = _t(~left)
-    right_only = err(solve(g0, g1m, pts, keep, K, init, SolverSettings())[-1])
+    right_only = err(solve(*image_pyramids(g0, g1m, 3), pts, keep, K, init, SolverSettings())[-1])
     print(f"translation error: all points {all_weighted * 1000:.1f} mm, moving half weighted 0 {right_only * 1000:.2f} mm")
     assert right_only < 2e-3 and all_weighted > 10 * right_only
 
@@ -119,8 +130,8 @@ def test_confidence_one_is_the_numpy_tracker():
     init, X = odo.motion2.copy(), odo._prev.points
     want = odo.register_frame(seq.image(10), seq.scan(10))
     pts, mask = pad_points(X, cfg.points.capacity)
-    got = solve(_t(grey_image(seq.image(9)))[None, None], _t(grey_image(seq.image(10)))[None, None], _t(pts),
-                _t(mask), _k(seq.calib.K2), _t(init)[None],
+    images = [_t(grey_image(seq.image(i)))[None, None] for i in (9, 10)]
+    got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
                 SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping))[-1][0].numpy()
     assert np.linalg.norm(want[:3, 3]) > 0.1  # the car moves
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
@@ -205,7 +216,7 @@ def test_no_points_no_motion_beyond_the_start():
     A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
     calib, _, (g0, g1, pts, mask), _ = _plane_inputs(A)
     init = make_se3(np.eye(3), [0.0, 0.0, 0.7])
-    out = solve(g0, g1, pts, mask * 0, _k(calib.K2), _t(init)[None], SolverSettings())[-1][0].numpy()
+    out = solve(*image_pyramids(g0, g1, 3), pts, mask * 0, _k(calib.K2), _t(init)[None], SolverSettings())[-1][0].numpy()
     assert np.allclose(out, init, atol=1e-12)
 
 
@@ -287,7 +298,7 @@ def test_pose_error_gradient_through_the_solver_blames_the_moved_points():
     moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
     g1m = _t(grey_image(moved))[None, None]
     weights = mask.clone().requires_grad_(True)
-    M = solve(g0, g1m, pts, weights, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1]
+    M = solve(*image_pyramids(g0, g1m, 3), pts, weights, _k(calib.K2), _t(np.eye(4))[None], SolverSettings())[-1]
     err = ((M[0, :3, 3] - _t(A[:3, 3])) ** 2).sum()
     err.backward()
     g = weights.grad[0, : len(X)]
