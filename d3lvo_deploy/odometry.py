@@ -155,7 +155,7 @@ class Odometry:
     def step_prepared(self, frame: "PreparedFrame", on_encoded: Callable[[], None] | None = None) -> np.ndarray:
         """`step` on a frame `prepare` has already done (by a pipeline's reader thread).
         `on_encoded` runs between the encoder and the flow+pose stage: a pipeline starts preparing
-        the next frame there, beside the single-threaded solver, rather than beside completion
+        the next frame there, beside the solver (one thread on OpenVINO), rather than beside completion
         and encoder, which use every core."""
         enc = self.encode_prepared(frame)
         if on_encoded is not None:

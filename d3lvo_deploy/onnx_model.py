@@ -69,7 +69,7 @@ class StageModel:
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
         for name, st in self.manifest["stages"].items():
             path = self.dir / st["file"]
-            sess = open_session(path, replace(sc, threads=1) if single_thread_stage(self.manifest, name) else sc,
+            sess = open_session(path, replace(sc, threads=1) if single_thread_stage(self.manifest, name, sc.backend) else sc,
                                 name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
