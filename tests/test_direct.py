@@ -11,6 +11,7 @@ from cli.main import app
 from d3lvo_deploy.calib import Calib
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry, huber_weights, pyramid
 from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, relatives, rotation_angle, se3_inv
+from d3lvo_deploy.points import in_depth_range
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.sequence import KittiSequence
 
@@ -27,6 +28,22 @@ def test_pyramid_levels_sit_on_even_source_pixels():
     X = np.array([(2 * j - 40.0) / 100.0 * 5, (2 * i - 30.0) / 90.0 * 5, 5.0])
     uv = lv.K @ X
     assert np.allclose(uv[:2] / uv[2], [j, i])
+
+
+def test_depth_range_keeps_what_a_plain_float64_transform_keeps():
+    """The float32 pre-filter must not drop or add a point, even within a micrometre of the limits."""
+    rng = np.random.default_rng(3)
+    T = make_se3(axis_angle_to_rot(np.array([1.2, -1.2, 1.2]) * 0.9), np.array([0.06, -0.08, -0.27]))
+    cam = np.c_[rng.uniform(-30, 30, (4000, 2)), rng.uniform(-130, 130, 4000)]
+    cam[:200, 2] = 0.5 + rng.choice([-1e-6, 1e-6], 200)  # at min_depth
+    cam[200:400, 2] = 120.0 + rng.choice([-1e-6, 1e-6], 200)  # at max_depth
+    velo = (cam - T[:3, 3]) @ T[:3, :3]  # the LiDAR points that T maps onto cam
+    scan = np.c_[velo, rng.uniform(0, 1, 4000)].astype(np.float32)
+    X = scan[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    expected = X[(X[:, 2] > 0.5) & (X[:, 2] < 120.0)]
+    got = in_depth_range(scan, T, 0.5, 120.0)
+    assert 100 < ((np.abs(got[:, 2] - 0.5) < 1e-4) | (np.abs(got[:, 2] - 120.0) < 1e-4)).sum() < 400
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
 
 
 def test_huber_threshold_follows_the_residual_scale():

@@ -52,6 +52,10 @@ def test_matches_loop_reference_on_random_points():
     rng = np.random.default_rng(1)
     pts = np.c_[rng.uniform(-5, 5, (3000, 2)), rng.uniform(-2, 30, 3000), np.zeros(3000)]
     np.testing.assert_array_equal(sparse_depth(pts, P_SIMPLE, 100, 40), _loop_reference(pts, P_SIMPLE, 100, 40))
+    # a float32 scan (pre-filtered by a float32 depth): the same pixels, also within 1e-6 m of min_depth
+    pts[:300, 2] = 0.1 + rng.choice([-1e-6, 1e-6], 300)
+    pts32 = pts.astype(np.float32)
+    np.testing.assert_array_equal(sparse_depth(pts32, P_SIMPLE, 100, 40), _loop_reference(pts32, P_SIMPLE, 100, 40))
 
 
 def test_crop_view_registers_with_the_image():
