@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .projection import rows_in_depth
+
 
 @dataclass
 class PointConfig:
@@ -50,13 +52,9 @@ def project(X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def in_depth_range(points: np.ndarray, T_cam_velo: np.ndarray, min_depth: float, max_depth: float) -> np.ndarray:
     """(N, >=3) LiDAR points -> (M, 3) float64 camera points with min_depth < z < max_depth: the
-    same points and values as transforming every return. A float32 depth with a centimetre's
-    margin first drops the half of a 360-degree scan behind the camera, so only the rest is
-    converted to float64 and transformed; rows are picked with np.compress on whole rows, ten
-    times faster than a boolean index or np.compress on a column slice (docs/performance.md)."""
-    T32 = T_cam_velo.astype(np.float32)
-    z = points[:, :3] @ T32[2, :3] + T32[2, 3]
-    near = np.compress((z > min_depth - 0.01) & (z < max_depth + 0.01), points, axis=0)[:, :3].astype(np.float64)
+    same points and values as transforming every return, but only the half of a 360-degree scan
+    ahead of the camera is converted to float64 and transformed (`rows_in_depth`)."""
+    near = rows_in_depth(points, T_cam_velo[2], min_depth, max_depth)[:, :3].astype(np.float64)
     X = near @ T_cam_velo[:3, :3].T + T_cam_velo[:3, 3]
     return np.compress((X[:, 2] > min_depth) & (X[:, 2] < max_depth), X, axis=0)
 

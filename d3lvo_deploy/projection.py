@@ -93,6 +93,17 @@ def network_view(src_width: int, src_height: int, net_width: int, net_height: in
     return View(v.src_width, v.src_height, v.top, v.left, cw, ch, net_width, net_height)
 
 
+def rows_in_depth(points: np.ndarray, depth_row: np.ndarray, min_depth: float,
+                  max_depth: float = np.inf) -> np.ndarray:
+    """The rows of an (N, >=3) float32 scan whose depth (`depth_row` . (x, y, z, 1)) may lie in
+    (min_depth, max_depth): computed in float32 with a centimetre's margin, so that no row the
+    float64 depth keeps is dropped, and only those rows go on to float64. Picked with np.compress
+    on whole rows, ten times faster than a boolean index or np.compress on a column slice."""
+    r = np.asarray(depth_row, np.float32)
+    z = points[:, :3] @ r[:3] + r[3]
+    return np.compress((z > min_depth - 0.01) & (z < max_depth + 0.01), points, axis=0)
+
+
 def project_points(points: np.ndarray, P: np.ndarray, width: int, height: int,
                    min_depth: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Project (N,>=3) LiDAR points with a 3x4 P; returns in-image pixel cols, rows and depths.
@@ -103,9 +114,8 @@ def project_points(points: np.ndarray, P: np.ndarray, width: int, height: int,
     """
     pts = np.asarray(points)
     P = np.asarray(P, dtype=np.float64)
-    if pts.dtype != np.float64:  # a float32 depth (centimetre margin) first drops what is behind
-        P32 = P.astype(np.float32)
-        pts = np.compress(pts[:, :3] @ P32[2, :3] + P32[2, 3] > min_depth - 0.01, pts, axis=0)
+    if pts.dtype != np.float64:
+        pts = rows_in_depth(pts, P[2], min_depth)
     xyz = pts[:, :3].astype(np.float64)
     z = xyz @ P[2, :3] + P[2, 3]
     front = z > min_depth  # np.compress: ten times faster than a boolean index on these arrays
