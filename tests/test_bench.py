@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
@@ -171,3 +172,16 @@ def test_pipelined_fps_steps_every_frame_in_order_once():
     assert rec.stepped == [0, 1, 2, 3, 0, 1]
     assert rec.prepared == [0, 1, 2, 3, 0, 1, 2]
     assert fps > 0
+
+
+def test_torch_side_times_the_point_solver_model(small_synth):
+    """The bundled model's kind (`pose_head="points"`): torch's flow+pose takes the solver's points
+    and image pyramids and frame t's depths, as the ONNX graph does, instead of failing on them."""
+    pytest.importorskip("torch")
+    from models.bench_torch import bench_torch
+    from models.config import D3LVOConfig
+
+    cfg = D3LVOConfig.small(pose_head="points", pt_iters=(2, 2, 2))
+    t = bench_torch(cfg, KittiSequence.open(small_synth), threads=1, runs=2, warmup=1).summary()
+    assert set(t) >= {"completion", "encoder", "flowpose", "total"}
+    assert t["flowpose"]["min"] > 0 and t["total"]["median"] >= t["flowpose"]["median"]
