@@ -53,10 +53,19 @@ def with_gradients(g: torch.Tensor) -> torch.Tensor:
     return torch.cat([g, gx, gy], 1)
 
 
+def image_size(img: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(h, w) of a (B,C,h,w) tensor as a tensor: in an ONNX export read from the graph's tensor
+    (a Shape op), so that the exported graph takes any image size; otherwise from the Python
+    shape (torch.compile traces `_shape_as_tensor` to a torch.Size)."""
+    if torch.onnx.is_in_onnx_export():
+        return torch._shape_as_tensor(img)[2:].to(dtype)
+    return torch.tensor(img.shape[2:], dtype=dtype, device=img.device)
+
+
 def sample_at(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Bilinear (B,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w read from the
-    tensor's shape as a tensor, so that the exported graph takes any image size."""
-    size = torch._shape_as_tensor(img)[2:].to(uv.dtype)  # (h, w)
+    """Bilinear (B,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w as
+    `image_size`."""
+    size = image_size(img, uv.dtype)  # (h, w)
     gx = 2.0 * uv[..., 0] / (size[1] - 1) - 1.0
     gy = 2.0 * uv[..., 1] / (size[0] - 1) - 1.0
     grid = torch.stack([gx, gy], -1).unsqueeze(1)
@@ -158,7 +167,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
     GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]."""
     dtype = X.dtype
-    size = torch._shape_as_tensor(stack)[2:].to(dtype).flip(0)  # (w, h)
+    size = image_size(stack, dtype).flip(0)  # (w, h)
     G = _grid_intrinsics(K, size)
     f = K[:, 0:2, None]  # (B,2,1)
     Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)

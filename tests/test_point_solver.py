@@ -16,7 +16,7 @@ from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points,
                                  textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.point_solver import (SolverSettings, gauss_jordan_solve, image_pyramids, masked_median, pyr_down,  # noqa: E402
-                                 so3_exp_small, solve, with_gradients)
+                                 sample_at, so3_exp_small, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
@@ -324,3 +324,18 @@ def test_training_with_a_pose_loss_through_the_solver(small_synth, tmp_path):
     assert rec["pose_loss"] != 0.0 and "level2" in rec, rec
     off = train(cfg, TrainConfig(data=[str(small_synth)], out=str(tmp_path / "m.pt"), steps=2, batch_size=2))
     assert off["pose_loss"] == 0.0
+
+
+def test_solver_samples_trace_under_torch_compile():
+    """`d3lvo bench --torch-compile` compiles the point head: the image size must come from the
+    Python shape there (dynamo gives `_shape_as_tensor` back as a torch.Size), and the export's
+    graph still reads it from the tensor (the export tests above)."""
+    rng = np.random.default_rng(0)
+    img = _t(rng.uniform(0, 1, (1, 3, 20, 30)))
+    uv = _t(rng.uniform(-2, 32, (1, 50, 2)))
+    uv[0, 0] = torch.tensor([12.25, 7.5], dtype=D)  # inside: checked by hand below
+    got = torch.compile(sample_at, backend="eager", fullgraph=True)(img, uv)
+    torch.testing.assert_close(got, sample_at(img, uv))
+    im = img[0, 0].numpy()
+    ref = 0.5 * (0.75 * im[7, 12] + 0.25 * im[7, 13]) + 0.5 * (0.75 * im[8, 12] + 0.25 * im[8, 13])
+    assert abs(float(got[0, 0, 0]) - ref) < 1e-9
