@@ -6,7 +6,7 @@ most, `points.py`) are 3D points (no pooling to cells, no resizing of the image)
 pyrDown levels, is sampled where the points project, and Gauss-Newton on SE(3) minimises the
 photometric difference, coarse to fine, up to `iterations` steps per level with an early stop,
 from a constant-velocity start. The robust weight is Huber's with its threshold re-estimated
-from the residuals every iteration (1.345 x the MAD scale), so it follows the scene instead of a
+from the residuals every third step (1.345 x the MAD scale), so it follows the scene instead of a
 fixed threshold that suits one exposure and one amount of noise.
 
 `DirectOdometry.register_frame(image, points)` reads as the algorithm; it has the streaming
@@ -39,6 +39,9 @@ class DirectConfig:
     iterations: tuple[int, ...] = (15, 15, 15)
     stop_step: float = 1e-6  # stop a level when the step moves no point by more than ~this (m, rad)
     damping: float = 1e-4  # Levenberg-Marquardt lambda relative to diag(H)
+    # the Huber threshold from the residuals' median at every this-th step of a level, kept in
+    # between: the median is a partial sort in the network's graph, its dearest node on OpenVINO
+    scale_every: int = 3
     points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked
     # fit frame t's grey as a ref + b at every iterate (exposure changes). Off: measured on five
     # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->
@@ -53,7 +56,8 @@ class DirectConfig:
             return cls()
         iters = tuple(model_config["pt_iters"])
         return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
-                   damping=model_config["pt_damping"], points=point_config(model_config))
+                   damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
+                   points=point_config(model_config))
 
 
 @dataclass
@@ -86,10 +90,15 @@ def pyramid(grey: np.ndarray, K: np.ndarray, levels: int) -> list[Level]:
     return out
 
 
-def huber_weights(r: np.ndarray) -> np.ndarray:
-    """Huber weights with the threshold at HUBER_K robust sigmas of these residuals."""
+def huber_threshold(r: np.ndarray) -> float:
+    """HUBER_K robust sigmas (1.4826 x the median |r|) of these residuals."""
+    return max(HUBER_K * MAD_TO_SIGMA * float(np.median(np.abs(r))), 1e-6)
+
+
+def huber_weights(r: np.ndarray, k: float | None = None) -> np.ndarray:
+    """Huber weights at threshold k, by default `huber_threshold(r)`."""
     a = np.abs(r)
-    k = max(HUBER_K * MAD_TO_SIGMA * float(np.median(a)), 1e-6)
+    k = huber_threshold(r) if k is None else k
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
 
 
@@ -111,7 +120,7 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
     """Gauss-Newton on M (frame t-1 points -> frame t) at one level; left updates exp(xi) M."""
     h, w = lvl.shape
     fx, fy = lvl.K[0, 0], lvl.K[1, 1]
-    for _ in range(iterations):
+    for i in range(iterations):
         Xt = X @ M[:3, :3].T + M[:3, 3]
         front = Xt[:, 2] > 0.1
         uv, zi = project(np.where(front[:, None], Xt, 1.0), lvl.K)
@@ -127,7 +136,9 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
         a = np.stack([s[:, 1] * fx * zi, s[:, 2] * fy * zi,
                       -(s[:, 1] * fx * Xt[:, 0] + s[:, 2] * fy * Xt[:, 1]) * zi * zi], 1)
         J = np.concatenate([a, np.cross(Xt, a)], 1)
-        Jw = J * huber_weights(r)[:, None]
+        if i % cfg.scale_every == 0:
+            k = huber_threshold(r)
+        Jw = J * huber_weights(r, k)[:, None]
         H, g = Jw.T @ J, Jw.T @ r
         H[np.diag_indices(6)] *= 1.0 + cfg.damping
         xi = -np.linalg.solve(H + 1e-12 * np.eye(6), g)

@@ -11,7 +11,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full")
+               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -75,6 +75,9 @@ class D3LVOConfig:
     pt_iters: tuple[int, ...] = (15, 15, 15)  # most Gauss-Newton steps per pyrDown level, coarse to fine
     pt_stop: float = 1e-6
     pt_damping: float = 1e-4
+    # the Huber threshold is taken from the residuals' median at every this-th step of a level and
+    # kept in between (the median is a partial sort, the dearest node of a step on OpenVINO)
+    pt_scale_every: int = 3
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
     # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
@@ -140,6 +143,8 @@ class D3LVOConfig:
         if not (isinstance(self.pt_iters, (tuple, list)) and self.pt_iters
                 and all(isinstance(n, int) and n >= 1 for n in self.pt_iters)):
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
+        if not (isinstance(self.pt_scale_every, int) and self.pt_scale_every >= 1):
+            raise ValueError(f"pt_scale_every must be a whole number of steps, at least 1, not {self.pt_scale_every!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):
             raise ValueError(f"pt_capacity must be a whole number of points, at least 12, not {self.pt_capacity!r}")
         if not (isinstance(self.pt_conf_power, (int, float)) and self.pt_conf_power > 0):
@@ -213,6 +218,7 @@ class D3LVOConfig:
         d.setdefault("pose_head", "mlp")  # configs written before the Gauss-Newton head had the MLP
         d.setdefault("gn_points", "dense")  # and before gn_points, the solver used every cell
         d.setdefault("gn_lidar_pool", "stride")  # and before gn_lidar_pool, only returns on a cell's pixel
+        d.setdefault("pt_scale_every", 1)  # and before pt_scale_every, the Huber threshold at every step
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
     @classmethod

@@ -3,7 +3,7 @@
 Frame t-1's textured LiDAR returns (`d3lvo_deploy.points.textured_points`, a fixed-length list with
 a mask) are moved by the running motion, projected into frame t's grey image and its pyrDown
 levels, and the photometric residual is minimised coarse to fine. Each level re-estimates a Huber
-threshold from the residuals' median (1.345 x 1.4826 x MAD), takes up to `iterations[l]`
+threshold from the residuals' median (1.345 x 1.4826 x MAD, every `scale_every` steps), takes up to `iterations[l]`
 damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps, so
 the unrolled graph computes what a loop with `break` computes). The network's only say is a
 weight per point, its confidence; with every confidence 1 this is exactly the classical tracker
@@ -37,6 +37,7 @@ class SolverSettings:
     iterations: tuple[int, ...] = (15, 15, 15)  # coarse to fine; len = pyramid levels
     stop_step: float = 1e-6
     damping: float = 1e-4
+    scale_every: int = 3  # the Huber threshold from the residuals' median at every this-th step
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -91,12 +92,15 @@ def masked_median(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.gather(v, -1, middle).mean(-1, keepdim=True)
 
 
-def huber_scale_weights(r: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Huber weights with the threshold at HUBER_K robust sigmas of the residuals under mask:
-    min(1, k / |r|), which is 1 where |r| <= k."""
-    a = r.abs()
-    k = (HUBER_K * MAD_TO_SIGMA * masked_median(a, mask)).clamp(min=1e-6)
-    return (k / a.clamp(min=1e-12)).clamp(max=1.0)
+def huber_threshold(r: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """HUBER_K robust sigmas (1.4826 x the median |r|) of the residuals under mask: (..., 1)."""
+    return (HUBER_K * MAD_TO_SIGMA * masked_median(r.abs(), mask)).clamp(min=1e-6)
+
+
+def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """min(1, k / |r|): 1 where |r| <= k."""
+    return (k / r.abs().clamp(min=1e-12)).clamp(max=1.0)
+
 
 
 # X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
@@ -182,7 +186,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     pad_one, last_one = _eye(6, X, 7), _const([0.0] * 6 + [1.0], X)  # (d^T, 1) = d^T pad_one + last_one
     to_last = _const([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
-    for _ in range(iterations):
+    for i in range(iterations):
         Xt = P @ Xh  # (B,3,N)
         z = Xt[:, 2:3]
         zi = torch.reciprocal(z.clamp(min=0.1))
@@ -195,7 +199,9 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
         Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
-        w = ok * weight * huber_scale_weights(nr, ok * median_mask)
+        if i % s.scale_every == 0:
+            k = huber_threshold(nr, ok * median_mask)
+        w = ok * weight * huber_weights_at(nr, k)
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # scaled to a unit diagonal first: translation and rotation columns differ by orders of
         # magnitude, which float32 elimination without pivoting would not survive. The damped

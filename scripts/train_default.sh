@@ -128,7 +128,7 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
 # measured for the direct tracker (docs/evaluation.md), and export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
-  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048))"
+  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"

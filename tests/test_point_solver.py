@@ -119,11 +119,13 @@ def _real_pair():
     return KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
 
 
-def test_confidence_one_is_the_numpy_tracker():
+@pytest.mark.parametrize("scale_every", [3, 1])
+def test_confidence_one_is_the_numpy_tracker(scale_every):
     """On a real frame pair, the solver with every confidence 1 gives the motion of
-    `d3lvo run --method direct` (numpy, float64, its own loop with a break) within 1e-6 m."""
+    `d3lvo run --method direct` (numpy, float64, its own loop with a break) within 1e-6 m, with
+    the Huber threshold re-estimated every third step (the default) and at every step."""
     seq = _real_pair()
-    cfg = DirectConfig()
+    cfg = DirectConfig(scale_every=scale_every)
     odo = DirectOdometry(seq.calib, cfg)
     for i in (8, 9):
         odo.register_frame(seq.image(i), seq.scan(i))
@@ -132,7 +134,7 @@ def test_confidence_one_is_the_numpy_tracker():
     pts, mask = pad_points(X, cfg.points.capacity)
     images = [_t(grey_image(seq.image(i)))[None, None] for i in (9, 10)]
     got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
-                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping))[-1][0].numpy()
+                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping, cfg.scale_every))[-1][0].numpy()
     assert np.linalg.norm(want[:3, 3]) > 0.1  # the car moves
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
 
@@ -187,9 +189,10 @@ def test_direct_method_is_the_models_classical_mode(points_model):
 
 
 def test_export_set_reaches_the_graph(points_model, tmp_path):
-    """`d3lvo export --set` changes the exported solver, not only the manifest: each Gauss-Newton
-    step takes one median (one TopK), so pt_iters=3,2 gives 5 TopK nodes where the fixture's
-    (5, 5, 5) gives 15, and the point list is pt_capacity long."""
+    """`d3lvo export --set` changes the exported solver, not only the manifest: a median (one
+    TopK) at every pt_scale_every-th step of a level, so the fixture's (5, 5, 5) with the default
+    3 (steps 0 and 3) gives 6 TopK nodes and pt_iters=3,2 with pt_scale_every=1 gives 5; the point
+    list is pt_capacity long."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -201,13 +204,13 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
         return sum(n.op_type == "TopK" for n in g.node), points.type.tensor_type.shape.dim[1].dim_value
 
     ck, default_dir = points_model
-    assert topk_and_capacity(default_dir) == (15, 2048)
+    assert topk_and_capacity(default_dir) == (6, 2048)
     r = CliRunner().invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_iters=3,2",
-                                 "--set", "pt_capacity=512", "--set", "pt_stop=3e-5"])
+                                 "--set", "pt_capacity=512", "--set", "pt_stop=3e-5", "--set", "pt_scale_every=1"])
     assert r.exit_code == 0, r.output
     assert topk_and_capacity(tmp_path / "o") == (5, 512)
     m = load_manifest(tmp_path / "o")["model_config"]
-    assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"]) == ([3, 2], 512, 3e-5)
+    assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"], m["pt_scale_every"]) == ([3, 2], 512, 3e-5, 1)
 
 
 def test_no_points_no_motion_beyond_the_start():
