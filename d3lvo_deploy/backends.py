@@ -144,8 +144,9 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
 def single_thread_stage(manifest: dict, stage: str, backend: str) -> bool:
     """OpenVINO runs the point solver's flow+pose graph on one thread: most of its ~7,000 nodes
     are 6x6 matrices and lists of 2,048 points, too small to split, and there a second thread
-    costs more than it gains (36 against 39 ms); onnxruntime gains from it (44 against 51 ms),
-    measured with `d3lvo bench` (docs/performance.md)."""
+    costs more than it gains (36 against 39 ms on an Intel Xeon; no faster on an AMD EPYC);
+    onnxruntime gains from it (44 against 51 ms on the Intel Xeon), measured with `d3lvo bench`
+    (docs/performance.md)."""
     inputs = manifest.get("stages", {}).get(stage, {}).get("inputs", [])
     return backend == "openvino" and stage == "flowpose" and any(i["name"] == "points1" for i in inputs)
 
