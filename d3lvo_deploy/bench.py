@@ -43,19 +43,33 @@ def peak_rss_mb() -> float:
 
 def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warmup: int = 3) -> StageTimes:
     """Steady-state per-frame latency: the stream runs over the sequence's frames (cycled), as on a car."""
-    model = StageModel(model_dir, sc)
-    odo = Odometry(model_dir, seq.calib, sc, model=model)
+    return bench_engines(model_dir, seq, [sc], runs, warmup)[0]
+
+
+def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs: int, warmup: int = 3,
+                  block: int = 5) -> list[StageTimes]:
+    """`bench_onnx` for several engines at once, taking turns `block` frames at a time: a VM's speed
+    drifts by tens of percent within minutes, and engines timed one after the other would each be
+    timed in a different phase of it; taking turns, their ratio is measured under the same drift.
+    Each engine streams its own run of the frames, so every one sees consecutive pairs."""
+    models = [StageModel(model_dir, sc) for sc in scs]
+    odos = [Odometry(model_dir, seq.calib, sc, model=m) for sc, m in zip(scs, models)]
     frames = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
-    times = StageTimes()
-    for k in range(warmup + runs):
-        img, pts = frames[k % len(frames)]
-        odo.step(img, pts)
-        if k >= warmup:
-            times.add(dict(odo.last_timing.ms))
-    if sc.profile_dir:
-        model.end_profiling()
-    else:
-        times.pipelined_fps = pipelined_fps(odo, frames, runs)
+    times = [StageTimes() for _ in scs]
+    done = [0] * len(scs)  # frames stepped per engine, warm-up included
+    while min(done) < warmup + runs:
+        for e, odo in enumerate(odos):
+            for _ in range(min(block, warmup + runs - done[e])):
+                k = done[e]
+                odo.step(*frames[k % len(frames)])
+                if k >= warmup:
+                    times[e].add(dict(odo.last_timing.ms))
+                done[e] += 1
+    for sc, model, odo, t in zip(scs, models, odos, times):
+        if sc.profile_dir:
+            model.end_profiling()
+        else:
+            t.pipelined_fps = pipelined_fps(odo, frames, runs)
     return times
 
 

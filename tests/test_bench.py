@@ -148,6 +148,34 @@ def test_cli_bench_precision_errors(small_model):
     assert r.exit_code == 1 and "fp32, fp16 or int8" in r.output
 
 
+def test_engines_take_turns_in_blocks_each_on_its_own_consecutive_frames(small_model, small_synth, monkeypatch):
+    """Two engines timed together alternate 2 frames at a time (the last turn shorter), each
+    stepping the frames 0, 1, 2, ... of its own stream, and each gets exactly `runs` samples."""
+    from d3lvo_deploy.bench import bench_engines
+    from d3lvo_deploy.odometry import Odometry
+
+    seq = KittiSequence.open(small_synth)
+    order = []
+    step = Odometry.step
+
+    def recording_step(self, image, points):
+        order.append((id(self), int(np.asarray(image).sum())))
+        return step(self, image, points)
+
+    monkeypatch.setattr(Odometry, "step", recording_step)
+    _, onnx_dir = small_model
+    scs = [SessionConfig(threads=1), SessionConfig(threads=1)]
+    times = bench_engines(onnx_dir, seq, scs, runs=4, warmup=1, block=2)
+    assert [len(t.samples["total"]) for t in times] == [4, 4]
+    stepped = [o for o, _ in order[:10]]  # the timed loop, before the pipelined one
+    a, b = stepped[0], stepped[2]
+    assert a != b and stepped == [a, a, b, b, a, a, b, b, a, b]
+    n = min(len(seq), 10)
+    sums = [int(np.asarray(seq.image(i)).sum()) for i in range(n)]
+    for engine in (a, b):
+        assert [s for o, s in order[:10] if o == engine] == [sums[k % n] for k in range(5)]
+
+
 def test_pipelined_fps_steps_every_frame_in_order_once():
     """The pipelined timing prepares frame k+1 while frame k steps: every frame, in order, each
     prepared once (one more is prepared ahead and dropped)."""
