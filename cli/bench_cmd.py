@@ -274,7 +274,8 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
                   + (f"; pipelined (`d3lvo run --pipeline`: frame t+1 prepared beside the solver) "
                      f"{res['backends'][b]['pipelined_fps']:.1f} frames/s"
                      if res["backends"][b].get("pipelined_fps") else ""), highlight=False)
-    msg = f"peak RSS {res['rss_mb']:.0f} MB"
+    msg = f"peak RSS {res['rss_mb']:.0f} MB" + (f" ({' and '.join(timed)} loaded together; one engine per "
+                                                 "process needs less: --backend B)" if len(timed) > 1 else "")
     if torch_t:
         msg += (f"; network stages: {res['best_backend']} {res['best_over_torch']:.2f}x torch eager"
                 + (f", onnxruntime {res['ort_over_torch']:.2f}x" if res['best_backend'] != "onnxruntime"
