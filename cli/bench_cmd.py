@@ -86,7 +86,7 @@ def bench_command(
     Example: d3lvo bench --runs 30 --no-torch   (the bundled model; --height 352 --width 1216: the paper's size)
     """
     from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
-    from d3lvo_deploy.bench import bench_engines, peak_rss_mb
+    from d3lvo_deploy.bench import TURN_FRAMES, bench_engines, peak_rss_mb
     from d3lvo_deploy.bundled import find_real_frames
     from d3lvo_deploy.cpu import cpu_info, gemm_peak_gflops
     from d3lvo_deploy.manifest import load_manifest
@@ -168,7 +168,7 @@ def bench_command(
         top_ops = None
         scs = [SessionConfig(threads=threads, backend=b, ov_precision=ov_precision if b == "openvino" else "f32",
                              profile_dir=str(profile) if profile and b == "onnxruntime" else None) for b in engines]
-        turns = ", taking turns 5 frames at a time" if len(engines) > 1 else ""
+        turns = f", taking turns {TURN_FRAMES} frames at a time" if len(engines) > 1 else ""
         with console.status(f"timing {', '.join(engines)} ({runs} frames each{turns}, then {runs} pipelined)"):
             for b, st in zip(engines, bench_engines(onnx, seq, scs, runs)):
                 timed[b], pipelined[b] = st.summary(), st.pipelined_fps

@@ -14,6 +14,7 @@ from .onnx_model import SessionConfig, StageModel
 from .sequence import KittiSequence
 
 BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
+TURN_FRAMES = 5  # frames an engine runs before the next engine's turn (`bench_engines`)
 
 
 @dataclass
@@ -47,7 +48,7 @@ def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warm
 
 
 def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs: int, warmup: int = 3,
-                  block: int = 5) -> list[StageTimes]:
+                  block: int = TURN_FRAMES) -> list[StageTimes]:
     """`bench_onnx` for several engines at once, taking turns `block` frames at a time: a VM's speed
     drifts by tens of percent within minutes, and engines timed one after the other would each be
     timed in a different phase of it; taking turns, their ratio is measured under the same drift.

@@ -102,7 +102,6 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return (k / r.abs().clamp(min=1e-12)).clamp(max=1.0)
 
 
-
 # X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
 # other way round; [omega]x.flatten() = SKEW^T omega. Written out as literals: built with in-place
 # writes, the tracer would record every write as a graph op
