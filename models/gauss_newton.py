@@ -1,9 +1,10 @@
 """Differentiable, export-friendly Gauss-Newton on SE(3): the geometric pose step dT = P(F, D, T).
 
 Written with elementwise ops, MatMul, GridSample and Where only, so that the flow+pose stage
-exports to standard ONNX: the 6x6 normal equations are solved by an unrolled Cholesky
-(`Inverse` is not in ONNX's default domain), the exponential map by Rodrigues' formula with a
-Taylor branch for the small angles of frame-to-frame motion.
+exports to standard ONNX: the 6x6 normal equations are solved by Gauss-Jordan elimination on
+whole matrices (`Inverse` is not in ONNX's default domain), the exponential map by Rodrigues'
+formula as its Taylor series for a solver step's small angles. Few ops per step: an exported
+graph's time goes to per-op overhead, not arithmetic (docs/performance.md).
 
 Convention: M maps points of frame t-1 into frame t (X_t = R X_{t-1} + t), i.e. the inverse
 of the relative pose A (frame t's pose in frame t-1). Updates are left-multiplied:
@@ -37,33 +38,64 @@ def so3_exp(omega: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=omega.dtype, device=omega.device) + a.unsqueeze(-1) * K + b.unsqueeze(-1) * (K @ K)
 
 
-def cholesky_solve(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Solve H x = g for symmetric positive definite (B,n,n) H, unrolled (n is 6 here)."""
-    n = H.shape[-1]
-    L = [[None] * n for _ in range(n)]
-    for j in range(n):
-        s = H[:, j, j]
-        for k in range(j):
-            s = s - L[j][k] * L[j][k]
-        L[j][j] = torch.sqrt(s.clamp(min=1e-12))
-        for i in range(j + 1, n):
-            s = H[:, i, j]
-            for k in range(j):
-                s = s - L[i][k] * L[j][k]
-            L[i][j] = s / L[j][j]
-    y = [None] * n
-    for i in range(n):  # L y = g
-        s = g[:, i]
-        for k in range(i):
-            s = s - L[i][k] * y[k]
-        y[i] = s / L[i][i]
-    x = [None] * n
-    for i in reversed(range(n)):  # L^T x = y
-        s = y[i]
-        for k in range(i + 1, n):
-            s = s - L[k][i] * x[k]
-        x[i] = s / L[i][i]
-    return torch.stack(x, -1)
+# [omega]x.flatten() = SKEW^T omega, written out as a literal: built with in-place writes, the
+# tracer would record every write as a graph op
+SKEW = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]]
+
+
+def literal(rows, like: torch.Tensor) -> torch.Tensor:
+    """A constant of the graph, in like's dtype and device."""
+    return torch.tensor(rows, dtype=like.dtype, device=like.device)
+
+
+def eye_like(n: int, like: torch.Tensor, m: int | None = None) -> torch.Tensor:
+    """(n, m) identity as a `literal` (one Constant in an exported graph)."""
+    return literal([[float(i == j) for j in range(m or n)] for i in range(n)], like)
+
+
+def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
+    """[A | b] (B,n,n+1) -> x (B,n,1) for symmetric positive definite A: Gauss-Jordan without
+    pivoting (stable for SPD, as LDL^T), seven whole-matrix ops per pivot instead of an unrolled
+    Cholesky's scalar ones (each op of a graph costs microseconds)."""
+    n = Ab.shape[-2]
+    eye = eye_like(n, Ab)
+    for k in range(n):
+        row = Ab[:, k : k + 1, :]
+        Ab = Ab - (Ab[:, :, k : k + 1] - eye[:, k : k + 1]) * (row / row[:, :, k : k + 1])
+    return Ab[:, :, n:]
+
+
+def gauss_jordan_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Solve A x = b for SPD (B,n,n) A and (B,n,1) b."""
+    return gauss_jordan(torch.cat([A, b], -1))
+
+
+def diagonal(A: torch.Tensor) -> torch.Tensor:
+    """(B,n,n) -> (B,n) as one Gather on the flattened matrix (torch.diagonal exports as
+    EyeLike + If, and indexing element by element as n Gathers)."""
+    n = A.shape[-1]
+    return A.flatten(1)[:, [(n + 1) * i for i in range(n)]]
+
+
+def spd_solve(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Solve H x = g for SPD (B,n,n) H and (B,n) g in float32: scaled to a unit diagonal first
+    (translation and rotation columns differ by orders of magnitude, which elimination without
+    pivoting would not survive), then `gauss_jordan`."""
+    d = torch.rsqrt(diagonal(H).clamp(min=1e-30)).unsqueeze(-1)  # (B,n,1)
+    return (d * gauss_jordan(torch.cat([H * (d @ d.transpose(1, 2)), d * g.unsqueeze(-1)], -1)))[..., 0]
+
+
+def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:
+    """(B,3) or (B,3,1) -> (B,3,3): Rodrigues with sin(t)/t and (1-cos t)/t^2 as their series to
+    t^4, exact to float64 rounding below 0.05 rad and to 1e-7 at 0.3 rad; a solver step is far
+    smaller (and a few ops, where `so3_exp`'s branch takes thirty)."""
+    if omega.dim() == 2:
+        omega = omega.unsqueeze(-1)
+    th2 = (omega * omega).sum(1, keepdim=True)  # (B,1,1)
+    K = (literal(SKEW, omega).transpose(0, 1) @ omega).reshape(-1, 3, 3)
+    ab = literal([1.0, 0.5], omega) + th2 * (literal([-1.0 / 6.0, -1.0 / 24.0], omega)
+                                             + th2 * literal([1.0 / 120.0, 1.0 / 720.0], omega))  # (B,1,2)
+    return eye_like(3, omega) + ab[..., :1] * K + ab[..., 1:] * (K @ K)
 
 
 def backproject(invdepth: torch.Tensor, K: torch.Tensor, scale: float, min_depth: float):
@@ -130,7 +162,7 @@ def apply(M: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
 def update(M: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     """exp(xi) M with the decoupled left update (R <- dR R, t <- dR t + rho), the exact
     counterpart of the Jacobian [I | -[X']x]."""
-    dR = so3_exp(xi[:, 3:])
+    dR = so3_exp_small(xi[:, 3:])  # a step is at most `damped_step`'s max_rot
     R = dR @ M[:, :3, :3]
     t = (dR @ M[:, :3, 3:]) + xi[:, :3].unsqueeze(-1)
     bottom = M[:, 3:, :]
@@ -170,12 +202,12 @@ def damped_step(H: torch.Tensor, g: torch.Tensor, damping: float, max_rot: float
     are uninformative (untrained depth, a textureless or occluded view) cannot throw the pose far
     from where the coarser level left it; a good step at 10 Hz is far smaller."""
     eye = torch.eye(6, dtype=H.dtype, device=H.device)
-    diag = torch.stack([H[:, i, i] for i in range(6)], -1)  # torch.diagonal exports as EyeLike + If
+    diag = diagonal(H)
     # plus 1e-4 of the mean curvature on every axis: with few points (a coarse level, a sparse
     # scan) one direction can be nearly unobserved, and float rounding would then decide the step
     floor = 1e-4 * diag.mean(-1, keepdim=True) + 1e-6
     Hd = H + eye * (damping * diag + floor).unsqueeze(-1)
-    xi = -cholesky_solve(Hd, g)
+    xi = -spd_solve(Hd, g)
     rho_n = torch.sqrt((xi[:, :3] ** 2).sum(-1, keepdim=True) + 1e-20)
     om_n = torch.sqrt((xi[:, 3:] ** 2).sum(-1, keepdim=True) + 1e-20)
     shrink = torch.minimum(torch.minimum(max_trans / rho_n, max_rot / om_n), torch.ones_like(rho_n))

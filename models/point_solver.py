@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from . import gauss_newton as gn
+from .gauss_newton import eye_like, gauss_jordan, literal, so3_exp_small
 from .layers import full_precision
 
 MAD_TO_SIGMA = 1.4826
@@ -87,8 +88,8 @@ def masked_median(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     count): (..., N) -> (..., 1). Masked-out values sort last behind a constant far above any
     residual of [0, 1] images; the middle indices floor((n - 1) / 2), floor(n / 2) never pass N // 2,
     so the smallest N // 2 + 1 values, a partial sort, hold both."""
-    v, _ = torch.topk(torch.where(mask > 0, a, _const(1e9, a)), int(a.shape[-1]) // 2 + 1, dim=-1, largest=False)
-    middle = torch.floor((mask.sum(-1, keepdim=True) + _const([-1.0, 0.0], a)) * 0.5).clamp(min=0).long()
+    v, _ = torch.topk(torch.where(mask > 0, a, literal(1e9, a)), int(a.shape[-1]) // 2 + 1, dim=-1, largest=False)
+    middle = torch.floor((mask.sum(-1, keepdim=True) + literal([-1.0, 0.0], a)) * 0.5).clamp(min=0).long()
     return torch.gather(v, -1, middle).mean(-1, keepdim=True)
 
 
@@ -103,50 +104,11 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
 
 
 # X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
-# other way round; [omega]x.flatten() = SKEW^T omega. Written out as literals: built with in-place
-# writes, the tracer would record every write as a graph op
+# other way round. Written out as literals: built with in-place writes, the tracer would record
+# every write as a graph op
 ROLL = [[0, 1, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1], [1, 0, 0], [0, 1, 0]]
 ROLL_BACK = ROLL[3:] + ROLL[:3]
 DIFF = [[1, 0, 0, -1, 0, 0], [0, 1, 0, 0, -1, 0], [0, 0, 1, 0, 0, -1]]
-SKEW = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]]
-
-
-def _const(rows, like: torch.Tensor) -> torch.Tensor:
-    return torch.tensor(rows, dtype=like.dtype, device=like.device)
-
-
-def _eye(n: int, like: torch.Tensor, m: int | None = None) -> torch.Tensor:
-    return _const([[float(i == j) for j in range(m or n)] for i in range(n)], like)
-
-
-def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
-    """[A | b] (B,n,n+1) -> x (B,n,1) for symmetric positive definite A: Gauss-Jordan without
-    pivoting (stable for SPD, as LDL^T), seven whole-matrix ops per pivot instead of an unrolled
-    Cholesky's scalar ones (each op of a graph costs microseconds)."""
-    n = Ab.shape[-2]
-    eye = _eye(n, Ab)
-    for k in range(n):
-        row = Ab[:, k : k + 1, :]
-        Ab = Ab - (Ab[:, :, k : k + 1] - eye[:, k : k + 1]) * (row / row[:, :, k : k + 1])
-    return Ab[:, :, n:]
-
-
-def gauss_jordan_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve A x = b for SPD (B,n,n) A and (B,n,1) b."""
-    return gauss_jordan(torch.cat([A, b], -1))
-
-
-def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:
-    """(B,3) or (B,3,1) -> (B,3,3): Rodrigues with sin(t)/t and (1-cos t)/t^2 as their series to
-    t^4, exact to float64 rounding below 0.05 rad and to 1e-7 at 0.3 rad; a solver step is far
-    smaller."""
-    if omega.dim() == 2:
-        omega = omega.unsqueeze(-1)
-    th2 = (omega * omega).sum(1, keepdim=True)  # (B,1,1)
-    K = (_const(SKEW, omega).transpose(0, 1) @ omega).reshape(-1, 3, 3)
-    ab = _const([1.0, 0.5], omega) + th2 * (_const([-1.0 / 6.0, -1.0 / 24.0], omega)
-                                           + th2 * _const([1.0 / 120.0, 1.0 / 720.0], omega))  # (B,1,2)
-    return _eye(3, omega) + ab[..., :1] * K + ab[..., 1:] * (K @ K)
 
 
 def _grid_intrinsics(K: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
@@ -179,11 +141,11 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     weight = weight.unsqueeze(1)
     w_ok = (weight > 0).to(dtype)
     median_mask = median_mask.unsqueeze(1)
-    roll, roll_back, diff = _const(ROLL, X), _const(ROLL_BACK, X), _const(DIFF, X)
-    diagonal = _const([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
-    unit, one = _eye(6, X, 7) > 0, _const(1.0, X)
-    pad_one, last_one = _eye(6, X, 7), _const([0.0] * 6 + [1.0], X)  # (d^T, 1) = d^T pad_one + last_one
-    to_last = _const([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
+    roll, roll_back, diff = literal(ROLL, X), literal(ROLL_BACK, X), literal(DIFF, X)
+    diagonal = literal([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
+    unit, one = eye_like(6, X, 7) > 0, literal(1.0, X)
+    pad_one, last_one = eye_like(6, X, 7), literal([0.0] * 6 + [1.0], X)  # (d^T, 1) = d^T pad_one + last_one
+    to_last = literal([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     for i in range(iterations):
         Xt = P @ Xh  # (B,3,N)

@@ -11,12 +11,25 @@ from d3lvo_deploy.geometry import rot_to_quat
 from models import gauss_newton as gn
 
 
-def test_cholesky_solve_matches_linalg():
+def test_spd_solve_matches_linalg_on_normal_equations_of_mixed_scale():
+    """A solver step's 6x6 system: translation and rotation columns of very different scale
+    (pixels per metre against pixels per radian), solved in float32 as the graph runs it."""
     g = torch.Generator().manual_seed(0)
-    A = torch.randn(5, 6, 6, generator=g, dtype=torch.float64)
-    H = A @ A.transpose(1, 2) + 0.1 * torch.eye(6, dtype=torch.float64)
-    b = torch.randn(5, 6, generator=g, dtype=torch.float64)
-    np.testing.assert_allclose(gn.cholesky_solve(H, b), torch.linalg.solve(H, b), rtol=1e-9, atol=1e-9)
+    J = torch.randn(5, 200, 6, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.1, 300.0, 300.0, 50.0],
+                                                                                   dtype=torch.float64)
+    H = J.transpose(1, 2) @ J
+    b = torch.randn(5, 6, generator=g, dtype=torch.float64) * 100.0
+    ref = torch.linalg.solve(H, b)
+    np.testing.assert_allclose(gn.spd_solve(H, b), ref, rtol=1e-9, atol=1e-12)
+    x32 = gn.spd_solve(H.float(), b.float()).double()
+    assert float(((x32 - ref).abs() / ref.abs().clamp(min=1e-6)).max()) < 1e-3
+
+
+def test_so3_exp_small_matches_so3_exp_within_a_steps_range():
+    axis = torch.tensor([[0.3, -0.8, 0.52]], dtype=torch.float64)
+    for angle in (0.0, 1e-4, 0.01, 0.02, 0.04):
+        w = axis / axis.norm() * angle
+        np.testing.assert_allclose(gn.so3_exp_small(w), torch.linalg.matrix_exp(gn.skew(w)), atol=1e-12)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-4, 0.01, 0.04, 0.06, 0.5, 2.0])

@@ -15,8 +15,9 @@ from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle  #
 from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
                                  textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
-from models.point_solver import (SolverSettings, gauss_jordan_solve, image_pyramids, masked_median, pyr_down,  # noqa: E402
-                                 sample_at, so3_exp_small, solve, with_gradients)
+from models.gauss_newton import gauss_jordan_solve, so3_exp_small  # noqa: E402
+from models.point_solver import (SolverSettings, image_pyramids, masked_median, pyr_down, sample_at, solve,  # noqa: E402
+                                 with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
