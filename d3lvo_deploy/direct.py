@@ -42,6 +42,9 @@ class DirectConfig:
     # the Huber threshold from the residuals' median at every this-th step of a level, kept in
     # between: the median is a partial sort in the network's graph, its dearest node on OpenVINO
     scale_every: int = 3
+    # after the finest level, up to this many more steps there (the network's `pt_refine`, whose
+    # restored weights are all 1 here, so that its classical mode stays this tracker)
+    refine: int = 0
     points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked
     # fit frame t's grey as a ref + b at every iterate (exposure changes). Off: measured on five
     # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->
@@ -57,7 +60,7 @@ class DirectConfig:
         iters = tuple(model_config["pt_iters"])
         return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
                    damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
-                   points=point_config(model_config))
+                   refine=model_config.get("pt_refine", 0), points=point_config(model_config))
 
 
 @dataclass
@@ -197,6 +200,8 @@ class DirectOdometry:
                 prev_lvl = self._prev.levels[lvl]
                 ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
                 M = align_level(M, X, ref, cur.levels[lvl], self.cfg.iterations[self.cfg.levels - 1 - lvl], self.cfg)
+            if self.cfg.refine:
+                M = align_level(M, X, ref, cur.levels[0], self.cfg.refine, self.cfg)
             A = se3_inv(M)
             self.motion2 = A
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000

@@ -11,7 +11,8 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every")
+               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
+               "pt_refine")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -78,6 +79,10 @@ class D3LVOConfig:
     # the Huber threshold is taken from the residuals' median at every this-th step of a level and
     # kept in between (the median is a partial sort, the dearest node of a step on OpenVINO)
     pt_scale_every: int = 3
+    # after the finest level, every point the solved pose explains (residual within the Huber
+    # threshold) weighs fully again, and up to this many more steps are taken there: the confidence
+    # is read before the pose is known, and on a static scene its doubts only reweight good points
+    pt_refine: int = 0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
     # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
@@ -145,6 +150,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
         if not (isinstance(self.pt_scale_every, int) and self.pt_scale_every >= 1):
             raise ValueError(f"pt_scale_every must be a whole number of steps, at least 1, not {self.pt_scale_every!r}")
+        if not (isinstance(self.pt_refine, int) and self.pt_refine >= 0):
+            raise ValueError(f"pt_refine must be a whole number of steps, 0 or more, not {self.pt_refine!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):
             raise ValueError(f"pt_capacity must be a whole number of points, at least 12, not {self.pt_capacity!r}")
         if not (isinstance(self.pt_conf_power, (int, float)) and self.pt_conf_power > 0):

@@ -39,6 +39,9 @@ class SolverSettings:
     stop_step: float = 1e-6
     damping: float = 1e-4
     scale_every: int = 3  # the Huber threshold from the residuals' median at every this-th step
+    # after the finest level, full weight back to every point the solved pose explains (residual
+    # within the Huber threshold) and up to this many more steps there (`restore_explained`)
+    refine: int = 0
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -176,6 +179,22 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     return P[:, :, :3], P[:, :, 3:].transpose(1, 2)
 
 
+def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
+                      K: torch.Tensor, weight: torch.Tensor, mask: torch.Tensor,
+                      median_mask: torch.Tensor) -> torch.Tensor:
+    """(B,N) weights: `mask` (full weight) where the solved pose R, t explains a point (its residual
+    in frame t's grey within the Huber threshold of all residuals), else `weight`. The confidence
+    is a prior read before the pose is known; a point that the pose fits is static evidence
+    whatever the prior said, and a mover stays down: under the right pose its residual is large."""
+    uv, _, front = project(X @ R.transpose(1, 2) + t, K)
+    h, w = stack.shape[-2:]
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    r = sample_at(stack[:, :1], uv)[:, 0] - ref
+    ok = front * inside.to(r.dtype) * (mask > 0).to(r.dtype)
+    k = huber_threshold(r, ok * median_mask)
+    return torch.where((r.abs() <= k) & (ok > 0), mask, weight)
+
+
 def pyramid_input_names(levels: int) -> tuple[list[str], list[str]]:
     """The flow+pose graph's names for `image_pyramids`' tensors, finest first (what
     `d3lvo_deploy.points.solver_feeds` feeds)."""
@@ -196,14 +215,18 @@ def image_pyramids(image1: torch.Tensor, image2: torch.Tensor, levels: int) -> t
 
 @full_precision
 def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor,
-          init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None):
+          init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None,
+          mask: torch.Tensor | None = None):
     """grey1, stack2 (`image_pyramids`): frame t-1's grey (B,1,h,w) and frame t's grey and
     derivatives (B,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution;
     points (B,N,3) frame t-1's points in camera coordinates; weight (B,N): the mask times the
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
-    Returns the relative pose A after each level, coarse to fine: list of (B,4,4)."""
-    median_mask = (weight > 0.5).to(points.dtype) if median_mask is None else median_mask
+    mask (B,N), the point list's (default weight > 0): what `s.refine` restores explained points to.
+    Returns the relative pose A after each level, coarse to fine (the finest after the refinement):
+    list of (B,4,4)."""
+    default_median = median_mask is None
+    median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
     M = gn.invert(init)
     R, t = M[:, :3, :3], M[:, :3, 3].unsqueeze(1)
     bottom = init[:, 3:, :]
@@ -212,5 +235,10 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
         ref = sample_at(grey1[lvl], project(points, Kl)[0])[:, 0]
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
+        if lvl == 0 and s.refine > 0:
+            mask = (weight > 0).to(weight.dtype) if mask is None else mask
+            weight = restore_explained(R, t, points, ref, stack2[0], Kl, weight, mask, median_mask)
+            median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
+            R, t = align_level(R, t, points, ref, stack2[0], Kl, weight, median_mask, s.refine, s)
         out.append(gn.invert(torch.cat([torch.cat([R, t.transpose(1, 2)], -1), bottom], 1)))
     return out

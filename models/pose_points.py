@@ -64,7 +64,8 @@ class PointPose(nn.Module):
         # features too
         looks = cfg.flow_hidden[1] + cfg.feature_widths[self.level] if cfg.pt_conf_inputs == "all" else 0
         self.moving = MovingLogits(2 + 1 + 3 + looks)
-        self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every)
+        self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every,
+                                        cfg.pt_refine)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                       invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,
@@ -123,7 +124,8 @@ class PointPose(nn.Module):
             pyramids = [solver[n] for n in grey1], [solver[n] for n in stack2]
         else:
             pyramids = image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
-        levels = solve(*pyramids, solver["points1"], weight, solver["image_intrinsics"], init, self.settings)
+        levels = solve(*pyramids, solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
+                       mask=solver["point_mask1"])
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out

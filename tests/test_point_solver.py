@@ -11,13 +11,14 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry  # noqa: E402
-from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle  # noqa: E402
+from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle, se3_inv  # noqa: E402
 from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
                                  textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.gauss_newton import gauss_jordan_solve, so3_exp_small  # noqa: E402
-from models.point_solver import (SolverSettings, image_pyramids, masked_median, pyr_down, sample_at, solve,  # noqa: E402
-                                 with_gradients)
+from models import gauss_newton as gn  # noqa: E402
+from models.point_solver import (SolverSettings, image_pyramids, masked_median, project, pyr_down,  # noqa: E402
+                                 restore_explained, sample_at, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
@@ -114,19 +115,52 @@ def test_zero_weight_points_are_ignored():
     assert right_only < 2e-3 and all_weighted > 10 * right_only
 
 
+def test_refinement_restores_the_static_points_a_wrong_confidence_doubted():
+    """The plane's moved half at confidence 0.05, its static half wrongly doubted at 0.7: under
+    the solved pose, the static points the pose explains weigh 1 again (about the share of
+    residuals within Huber's 1.345 sigma), the moved ones stay down, and the refined pose is at
+    least as close to the truth."""
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (img0, img1, _), (g0, g1, pts, mask), X = _plane_inputs(A)
+    left = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) < 310
+    Xt = X @ se3_inv(A)[:3, :3].T + se3_inv(A)[:3, 3]
+    u = calib.K2[0, 0] * Xt[:, 0] / Xt[:, 2] + calib.K2[0, 2]  # in frame t, columns < 280 are shifted
+    shifted, static = u < 270, u > 290
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    pyr = image_pyramids(g0, _t(grey_image(moved))[None, None], 3)
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    conf = mask.clone()
+    conf[0, : len(X)] = _t(np.where(left, 0.05, 0.7))
+    err = lambda M: float(np.linalg.norm(M[0, :3, 3].numpy() - A[:3, 3]))  # noqa: E731
+    A_solved = solve(*pyr, pts, conf, K, init, SolverSettings())[-1]
+    A_refined = solve(*pyr, pts, conf, K, init, SolverSettings(refine=5), mask=mask)[-1]
+    M = gn.invert(A_solved)
+    ref = sample_at(g0, project(pts, K)[0])[:, 0]
+    w = restore_explained(M[:, :3, :3], M[:, :3, 3].unsqueeze(1), pts, ref, pyr[1][0], K, conf, mask,
+                          (conf > 0.5).to(conf.dtype))[0, : len(X)].numpy()
+    restored_static, restored_shifted = (w[static] == 1).mean(), (w[shifted] == 1).mean()
+    print(f"restored: static {restored_static:.3f}, shifted {restored_shifted:.3f}; translation error "
+          f"{err(A_solved) * 1000:.2f} mm, refined {err(A_refined) * 1000:.2f} mm")
+    assert restored_static > 0.6 and restored_shifted < 0.05
+    assert np.isin(w[~left], [0.7, 1.0]).all() and np.isin(w[left], [0.05, 1.0]).all()  # restored or kept
+    assert err(A_refined) <= err(A_solved) + 1e-4 and err(A_refined) < 2e-3
+
+
 def _real_pair():
     from conftest import shared_path
 
     return KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
 
 
-@pytest.mark.parametrize("scale_every", [3, 1])
-def test_confidence_one_is_the_numpy_tracker(scale_every):
+@pytest.mark.parametrize("scale_every, refine", [(3, 0), (1, 0), (3, 5)])
+def test_confidence_one_is_the_numpy_tracker(scale_every, refine):
     """On a real frame pair, the solver with every confidence 1 gives the motion of
     `d3lvo run --method direct` (numpy, float64, its own loop with a break) within 1e-6 m, with
-    the Huber threshold re-estimated every third step (the default) and at every step."""
+    the Huber threshold re-estimated every third step (the default) and at every step, and with
+    the refinement after the finest level (which restores nothing when every weight is 1)."""
     seq = _real_pair()
-    cfg = DirectConfig(scale_every=scale_every)
+    cfg = DirectConfig(scale_every=scale_every, refine=refine)
     odo = DirectOdometry(seq.calib, cfg)
     for i in (8, 9):
         odo.register_frame(seq.image(i), seq.scan(i))
@@ -135,7 +169,7 @@ def test_confidence_one_is_the_numpy_tracker(scale_every):
     pts, mask = pad_points(X, cfg.points.capacity)
     images = [_t(grey_image(seq.image(i)))[None, None] for i in (9, 10)]
     got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
-                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping, cfg.scale_every))[-1][0].numpy()
+                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping, cfg.scale_every, refine))[-1][0].numpy()
     assert np.linalg.norm(want[:3, 3]) > 0.1  # the car moves
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
 
