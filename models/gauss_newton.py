@@ -18,26 +18,6 @@ import torch
 import torch.nn.functional as F
 
 
-def skew(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(v.shape[:-1] + (3, 3))
-
-
-def so3_exp(omega: torch.Tensor) -> torch.Tensor:
-    """(B,3) axis-angle -> (B,3,3). Rodrigues; below 0.05 rad the Taylor series (3 terms) keeps
-    float32 exact where sin(t)/t and (1-cos t)/t^2 cancel catastrophically."""
-    th2 = (omega * omega).sum(-1, keepdim=True)
-    th = torch.sqrt(th2 + 1e-20)
-    small = th < 0.05
-    safe = torch.where(small, torch.ones_like(th), th)
-    a = torch.where(small, 1 - th2 / 6 + th2 * th2 / 120, torch.sin(safe) / safe)
-    b = torch.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - torch.cos(safe)) / (safe * safe))
-    K = skew(omega)
-    return torch.eye(3, dtype=omega.dtype, device=omega.device) + a.unsqueeze(-1) * K + b.unsqueeze(-1) * (K @ K)
-
-
 # [omega]x.flatten() = SKEW^T omega, written out as a literal: built with in-place writes, the
 # tracer would record every write as a graph op
 SKEW = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]]
@@ -88,7 +68,7 @@ def spd_solve(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:
     """(B,3) or (B,3,1) -> (B,3,3): Rodrigues with sin(t)/t and (1-cos t)/t^2 as their series to
     t^4, exact to float64 rounding below 0.05 rad and to 1e-7 at 0.3 rad; a solver step is far
-    smaller (and a few ops, where `so3_exp`'s branch takes thirty)."""
+    smaller (and a few ops, where a sin/cos branch takes thirty)."""
     if omega.dim() == 2:
         omega = omega.unsqueeze(-1)
     th2 = (omega * omega).sum(1, keepdim=True)  # (B,1,1)
