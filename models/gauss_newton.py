@@ -23,6 +23,16 @@ import torch.nn.functional as F
 SKEW = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]]
 
 
+# X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
+# other way round: a cross product of points along the last axis as three small MatMuls
+ROLL = [[0, 1, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1], [1, 0, 0], [0, 1, 0]]
+ROLL_BACK = ROLL[3:] + ROLL[:3]
+DIFF = [[1, 0, 0, -1, 0, 0], [0, 1, 0, 0, -1, 0], [0, 0, 1, 0, 0, -1]]
+# the pixel Jacobians' translation rows from (fx/z, fy/z, -fx x/z^2, -fy y/z^2): d u / d X' in
+# rows 0-2, d v / d X' in rows 3-5
+PIXEL_ROWS = [[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]
+
+
 def literal(rows, like: torch.Tensor) -> torch.Tensor:
     """A constant of the graph, in like's dtype and device."""
     return torch.tensor(rows, dtype=like.dtype, device=like.device)
@@ -31,6 +41,17 @@ def literal(rows, like: torch.Tensor) -> torch.Tensor:
 def eye_like(n: int, like: torch.Tensor, m: int | None = None) -> torch.Tensor:
     """(n, m) identity as a `literal` (one Constant in an exported graph)."""
     return literal([[float(i == j) for j in range(m or n)] for i in range(n)], like)
+
+
+def grid_intrinsics(K: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """(B,3,3) G with G X = z (GridSample's x, y, 1) for a camera point X: the intrinsics K (B,4)
+    followed by GridSample's pixel -> [-1, 1] map (align_corners), size (w, h) a graph tensor."""
+    s = 2.0 / (size - 1.0)  # (2,)
+    f, c = K[:, 0:2] * s, K[:, 2:4] * s - 1.0  # (B,2)
+    zero = torch.zeros_like(K[:, :1])
+    one = torch.ones_like(K[:, :1])
+    return torch.stack([torch.cat([f[:, :1], zero, c[:, :1]], 1), torch.cat([zero, f[:, 1:], c[:, 1:]], 1),
+                        torch.cat([zero, zero, one], 1)], 1)
 
 
 def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
@@ -45,24 +66,17 @@ def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
     return Ab[:, :, n:]
 
 
-def gauss_jordan_solve(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Solve A x = b for SPD (B,n,n) A and (B,n,1) b."""
-    return gauss_jordan(torch.cat([A, b], -1))
-
-
-def diagonal(A: torch.Tensor) -> torch.Tensor:
-    """(B,n,n) -> (B,n) as one Gather on the flattened matrix (torch.diagonal exports as
-    EyeLike + If, and indexing element by element as n Gathers)."""
-    n = A.shape[-1]
-    return A.flatten(1)[:, [(n + 1) * i for i in range(n)]]
-
-
-def spd_solve(H: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Solve H x = g for SPD (B,n,n) H and (B,n) g in float32: scaled to a unit diagonal first
-    (translation and rotation columns differ by orders of magnitude, which elimination without
-    pivoting would not survive), then `gauss_jordan`."""
-    d = torch.rsqrt(diagonal(H).clamp(min=1e-30)).unsqueeze(-1)  # (B,n,1)
-    return (d * gauss_jordan(torch.cat([H * (d @ d.transpose(1, 2)), d * g.unsqueeze(-1)], -1)))[..., 0]
+def scaled_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
+    """x (B,n,1) solving H' x = b for [H | b] (B,n,n+1), H symmetric positive definite, where H' is H
+    with its diagonal replaced by `damped` (B,n,1). Scaled to a unit diagonal first: translation and
+    rotation columns differ by orders of magnitude, which float32 elimination without pivoting
+    would not survive. The scaled diagonal is exactly 1 and is written as 1, so that a system
+    without points (H = 0) solves I x = 0 instead of 0/0."""
+    n = Hb.shape[-2]
+    d = torch.pow(damped, -0.5)
+    pad_one, last_one = eye_like(n, Hb, n + 1), literal([0.0] * n + [1.0], Hb)  # (d^T, 1) = d^T pad_one + last_one
+    Hs = torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
+    return d * gauss_jordan(Hs)
 
 
 def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:
@@ -104,20 +118,6 @@ def project(X: torch.Tensor, K: torch.Tensor, scale: float):
     return torch.stack([fx * x * zi + cx, fy * y * zi + cy], -1), front
 
 
-def pixel_jacobian(X: torch.Tensor, K: torch.Tensor, scale: float) -> torch.Tensor:
-    """d pi(exp(xi) X) / d xi at xi = 0, in level cells: (B,N,2,6). The projection's 2x3
-    Jacobian times [I | -[X]x], multiplied out (row a of it is [a, X x a]); its zeros are made
-    from the data (x * 0), since a zeros_like of a static shape is folded into the graph as a
-    constant per call (10 MB of them at 608x176)."""
-    fx, fy = [K[:, i].view(-1, 1) / scale for i in range(2)]
-    x, y, z = X.unbind(-1)
-    zi = 1.0 / z.clamp(min=0.1)  # behind the camera: masked by `front`
-    xz, yz, o = x * zi, y * zi, x * 0.0
-    ju = [fx * zi, o, -fx * xz * zi, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz]
-    jv = [o, fy * zi, -fy * yz * zi, -fy * (1 + yz * yz), fy * xz * yz, fy * xz]
-    return torch.stack(ju + jv, -1).reshape(X.shape[:-1] + (2, 6))
-
-
 def sample(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear sample (B,C,h,w) at level coordinates (B,N,2) -> (B,C,N); zeros outside."""
     h, w = x.shape[-2:]
@@ -139,65 +139,70 @@ def apply(M: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
     return X @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1)
 
 
-def update(M: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-    """exp(xi) M with the decoupled left update (R <- dR R, t <- dR t + rho), the exact
-    counterpart of the Jacobian [I | -[X']x]."""
-    dR = so3_exp_small(xi[:, 3:])  # a step is at most `damped_step`'s max_rot
-    R = dR @ M[:, :3, :3]
-    t = (dR @ M[:, :3, 3:]) + xi[:, :3].unsqueeze(-1)
-    bottom = M[:, 3:, :]
-    return torch.cat([torch.cat([R, t], -1), bottom], 1)
-
-
-def normal_equations(J: torch.Tensor, r: torch.Tensor, w: torch.Tensor):
-    """J (B,N,k,6), r (B,N,k), w (B,N) -> H (B,6,6), g (B,6) of sum_n w_n |r_n + J_n xi|^2."""
-    Jw = J * w.unsqueeze(-1).unsqueeze(-1)
-    b = J.shape[0]
-    H = Jw.reshape(b, -1, 6).transpose(1, 2) @ J.reshape(b, -1, 6)
-    g = (Jw.reshape(b, -1, 6) * r.reshape(b, -1, 1)).sum(1)
-    return H, g
-
-
-def feature_normal_equations(Jp: torch.Tensor, r: torch.Tensor, gu: torch.Tensor, gv: torch.Tensor,
-                             w: torch.Tensor):
-    """H, g of sum_n w_n sum_c (r_cn + (gu_cn Ju_n + gv_cn Jv_n) xi)^2 without forming the
-    (N, C, 6) Jacobian: sum_c J^T J = Ju^T Ju S_uu + (Ju^T Jv + Jv^T Ju) S_uv + Jv^T Jv S_vv with
-    per-point channel sums S, and g = Ju S_ru + Jv S_rv. The same numbers as `normal_equations` on
-    the full Jacobian, C times less work and no batched 2x6 products (slow as graph ops).
-    Jp (B,N,2,6) pixel Jacobian; r, gu, gv (B,C,N) residual and feature gradients; w (B,N)."""
-    Ju, Jv = Jp[:, :, 0], Jp[:, :, 1]  # (B,N,6)
-    suu, suv, svv = ((gu * gu).sum(1) * w, (gu * gv).sum(1) * w, (gv * gv).sum(1) * w)
-    sru, srv = (r * gu).sum(1) * w, (r * gv).sum(1) * w
-    JuT, JvT = Ju.transpose(1, 2), Jv.transpose(1, 2)
-    cross = JuT @ (Jv * suv.unsqueeze(-1))
-    H = JuT @ (Ju * suu.unsqueeze(-1)) + cross + cross.transpose(1, 2) + JvT @ (Jv * svv.unsqueeze(-1))
-    g = (Ju * sru.unsqueeze(-1)).sum(1) + (Jv * srv.unsqueeze(-1)).sum(1)
-    return H, g
-
-
-def damped_step(H: torch.Tensor, g: torch.Tensor, damping: float, max_rot: float = 0.02,
-                max_trans: float = 0.3) -> torch.Tensor:
-    """Levenberg-Marquardt step -inv(H + lambda diag(H) + floor I) g, scaled down (direction kept)
-    to at most `max_rot` rad and `max_trans` m: a trust region, so that a level whose residuals
-    are uninformative (untrained depth, a textureless or occluded view) cannot throw the pose far
-    from where the coarser level left it; a good step at 10 Hz is far smaller."""
-    eye = torch.eye(6, dtype=H.dtype, device=H.device)
-    diag = diagonal(H)
-    # plus 1e-4 of the mean curvature on every axis: with few points (a coarse level, a sparse
-    # scan) one direction can be nearly unobserved, and float rounding would then decide the step
-    floor = 1e-4 * diag.mean(-1, keepdim=True) + 1e-6
-    Hd = H + eye * (damping * diag + floor).unsqueeze(-1)
-    xi = -spd_solve(Hd, g)
-    rho_n = torch.sqrt((xi[:, :3] ** 2).sum(-1, keepdim=True) + 1e-20)
-    om_n = torch.sqrt((xi[:, 3:] ** 2).sum(-1, keepdim=True) + 1e-20)
-    shrink = torch.minimum(torch.minimum(max_trans / rho_n, max_rot / om_n), torch.ones_like(rho_n))
-    return xi * shrink
-
-
-def huber_weights(r2: torch.Tensor, delta: float) -> torch.Tensor:
-    """IRLS weights of the Huber loss on residual norms sqrt(r2); no gradient (a weighting)."""
-    n = torch.sqrt(r2.detach() + 1e-12)
-    return torch.where(n <= delta, torch.ones_like(n), delta / n)
+def feature_align(M: torch.Tensor, X: torch.Tensor, stack: torch.Tensor, ref: torch.Tensor, weight: torch.Tensor,
+                  K: torch.Tensor, iterations: int, huber: float, damping: float, max_rot: float = 0.02,
+                  max_trans: float = 0.3) -> torch.Tensor:
+    """`iterations` damped Gauss-Newton steps on sum_n weight_n huber(|f2(pi(M X_n)) - f1_n|^2 / C):
+    laid out for a short graph (each op costs microseconds whatever its size) as
+    `point_solver.align_level` is.
+    M (B,4,4); X (B,N,3) frame t-1's points; stack (B,3C,h,w) frame t's C channels and their u, v
+    derivatives; ref (B,C,N) frame t-1's channels; weight (B,N); K (B,4) fx, fy, cx, cy in the
+    level's cells. Per step: the pose as a (B,3,4) matrix on homogeneous points, the projection
+    straight to GridSample's coordinates, the channels folded into five per-point sums (S_uu, S_uv,
+    S_vv, S_ru, S_rv), and [H | -g] as one MatMul over the points' u and v Jacobians side by side:
+    H = sum_n [Ju, Jv] S_n [Ju, Jv]^T with S_n the 2x2 channel sums."""
+    b, c3, h, w = stack.shape
+    c, n = c3 // 3, X.shape[1]
+    G = grid_intrinsics(K, literal([w, h], K))
+    f = K[:, 0:2, None]  # (B,2,1)
+    half = literal([[(w - 1) / 2], [(h - 1) / 2]], K)  # grid units -> cells
+    P = M[:, :3, :]
+    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
+    ref = ref.unsqueeze(1)  # (B,1,C,N)
+    weight = weight.unsqueeze(1)  # (B,1,N)
+    left, right = [0, 0, 1, 1, 2], [1, 2, 1, 2, 2]  # channel sums (r u, r v, u u, u v, v v)
+    roll, roll_back, diff = literal(ROLL, X), literal(ROLL_BACK, X), literal(DIFF, X)
+    rows = literal(PIXEL_ROWS, X)
+    diagonal_at = literal([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
+    to_last = literal([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
+    limits = literal([max_trans, max_rot], X)
+    for _ in range(iterations):
+        Xt = P @ Xh  # (B,3,N)
+        z = Xt[:, 2:3]
+        zi = torch.reciprocal(z.clamp(min=0.1))  # behind the camera: masked by `front`
+        grid = (G @ Xt)[:, :2] * zi  # (B,2,N), [-1, 1] inside the image
+        # fades from 1 one cell inside the image to 0 at its border: a point crossing the border
+        # must not switch its weight on or off (a jump in the solution that float rounding triggers)
+        inside = ((1.0 - grid.abs()) * half).amin(1, keepdim=True).clamp(0.0, 1.0)
+        smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
+                            align_corners=True).reshape(b, 3, c, n)  # grey/features, d/du, d/dv
+        r = smp[:, :1] - ref  # (B,1,C,N)
+        D = torch.cat([r, smp[:, 1:]], 1)
+        S = (D[:, left] * D[:, right]).sum(2)  # (B,5,N)
+        r2 = (r * r).sum(2).detach() / c  # the Huber weight is a weighting: no gradient
+        wgt = weight * (z > 0.1).to(X.dtype) * inside * (huber * torch.rsqrt(r2 + 1e-12)).clamp(max=1.0)
+        fz = f * zi
+        a = (rows @ torch.cat([fz, -fz * Xt[:, :2] * zi], 1)).reshape(b, 2, 3, n)  # d u / d X', d v / d X'
+        a = torch.cat([a[:, 0], a[:, 1]], -1)  # (B,3,2N)
+        X2 = torch.cat([Xt, Xt], -1)
+        J = torch.cat([a, diff @ ((roll @ X2) * (roll_back @ a))], 1)  # (B,6,2N): [Ju | Jv]
+        Jswap = torch.cat([J[..., n:], J[..., :n]], -1)  # [Jv | Ju]
+        diag_s = torch.cat([S[:, 2:3], S[:, 4:5]], -1)  # (S_uu | S_vv)
+        cross_s = torch.cat([S[:, 3:4], S[:, 3:4]], -1)  # (S_uv | S_uv)
+        minus_g = -torch.cat([S[:, 0:1], S[:, 1:2]], -1)  # -(S_ru | S_rv)
+        SJ = torch.cat([J * diag_s + Jswap * cross_s, minus_g], 1)  # (B,7,2N)
+        Hg = (J * torch.cat([wgt, wgt], -1)) @ SJ.transpose(1, 2)  # (B,6,7): [H | -g]
+        # damped by damping diag(H) plus 1e-4 of the mean curvature on every axis: with few points
+        # one direction can be nearly unobserved, and float rounding would then decide the step
+        dg = Hg.flatten(1)[:, diagonal_at]  # (B,6,1)
+        xi = scaled_solve(Hg, dg * (1.0 + damping) + 1e-4 * dg.mean(1, keepdim=True) + 1e-6)  # (B,6,1)
+        # a trust region: at most max_trans m and max_rot rad, direction kept, so that a level whose
+        # residuals are uninformative (untrained features, a textureless or occluded view) cannot
+        # throw the pose far from where the coarser level left it; a good step at 10 Hz is far smaller
+        norms = torch.sqrt((xi.reshape(b, 2, 3) ** 2).sum(-1) + 1e-20)  # (B,2)
+        xi = xi * (limits / norms).amin(-1, keepdim=True).clamp(max=1.0).unsqueeze(-1)
+        P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
+    return torch.cat([P, M[:, 3:]], 1)
 
 
 def matrix_to_pose(M: torch.Tensor) -> torch.Tensor:

@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from . import gauss_newton as gn
-from .gauss_newton import eye_like, gauss_jordan, literal, so3_exp_small
+from .gauss_newton import DIFF, ROLL, ROLL_BACK, grid_intrinsics, literal, scaled_solve, so3_exp_small
 from .layers import full_precision
 
 MAD_TO_SIGMA = 1.4826
@@ -106,25 +106,6 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return (k / r.abs().clamp(min=1e-12)).clamp(max=1.0)
 
 
-# X x a = [I, -I] ((ROLL X) * (ROLL' a)) with ROLL = rows (1, 2, 0) over (2, 0, 1) and ROLL' the
-# other way round. Written out as literals: built with in-place writes, the tracer would record
-# every write as a graph op
-ROLL = [[0, 1, 0], [0, 0, 1], [1, 0, 0], [0, 0, 1], [1, 0, 0], [0, 1, 0]]
-ROLL_BACK = ROLL[3:] + ROLL[:3]
-DIFF = [[1, 0, 0, -1, 0, 0], [0, 1, 0, 0, -1, 0], [0, 0, 1, 0, 0, -1]]
-
-
-def _grid_intrinsics(K: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-    """(B,3,3) G with G X = z (GridSample's x, y, 1) for a camera point X: the intrinsics K (B,4)
-    followed by GridSample's pixel -> [-1, 1] map (align_corners), size (w, h) a graph tensor."""
-    s = 2.0 / (size - 1.0)  # (2,)
-    f, c = K[:, 0:2] * s, K[:, 2:4] * s - 1.0  # (B,2)
-    zero = torch.zeros_like(K[:, :1])
-    one = torch.ones_like(K[:, :1])
-    return torch.stack([torch.cat([f[:, :1], zero, c[:, :1]], 1), torch.cat([zero, f[:, 1:], c[:, 1:]], 1),
-                        torch.cat([zero, zero, one], 1)], 1)
-
-
 def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
                 K: torch.Tensor, weight: torch.Tensor, median_mask: torch.Tensor, iterations: int,
                 s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,7 +117,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]."""
     dtype = X.dtype
     size = image_size(stack, dtype).flip(0)  # (w, h)
-    G = _grid_intrinsics(K, size)
+    G = grid_intrinsics(K, size)
     f = K[:, 0:2, None]  # (B,2,1)
     Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
     P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
@@ -146,8 +127,6 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     median_mask = median_mask.unsqueeze(1)
     roll, roll_back, diff = literal(ROLL, X), literal(ROLL_BACK, X), literal(DIFF, X)
     diagonal = literal([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
-    unit, one = eye_like(6, X, 7) > 0, literal(1.0, X)
-    pad_one, last_one = eye_like(6, X, 7), literal([0.0] * 6 + [1.0], X)  # (d^T, 1) = d^T pad_one + last_one
     to_last = literal([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     for i in range(iterations):
@@ -167,13 +146,9 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
             k = huber_threshold(nr, ok * median_mask)
         w = ok * weight * huber_weights_at(nr, k)
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
-        # scaled to a unit diagonal first: translation and rotation columns differ by orders of
-        # magnitude, which float32 elimination without pivoting would not survive. The damped
-        # diagonal (1 + damping) diag(H) + 1e-12 scales to exactly 1, so it is written as 1; a
-        # stopped level (no points left, say an empty scan) then solves I xi = 0 instead of 0/0
-        d = torch.pow(Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12, -0.5)  # (B,6,1)
-        Hs = torch.where(unit, one, Hg * (d * (d.transpose(1, 2) @ pad_one + last_one)))
-        xi = d * gauss_jordan(Hs) * active  # (B,6,1)
+        # damped diagonal (1 + damping) diag(H) + 1e-12; a stopped level (no points left, say an
+        # empty scan) solves I xi = 0
+        xi = scaled_solve(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
         P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
         active = active * (xi.abs().amax(1, keepdim=True) >= s.stop_step).to(dtype)
     return P[:, :, :3], P[:, :, 3:].transpose(1, 2)

@@ -70,22 +70,9 @@ class GaussNewtonPose(nn.Module):
         """`gn_iters` damped Gauss-Newton steps on sum_p conf(p) rho(|f2(pi(M X_p)) - f1(p)|^2)."""
         b, c, h, w = f2.shape
         gx, gy = gn.image_gradients(f2)
-        stack = torch.cat([f2, gx, gy], 1)
-        ref = f1.reshape(b, c, h * w)
-        weight = conf.reshape(b, h * w) * valid
-        for _ in range(self.cfg.gn_iters):
-            Xt = gn.apply(M, X)
-            uv, front = gn.project(Xt, K, scale)
-            s = gn.sample(stack, uv)  # (B,3C,N)
-            # fades from 1 one cell inside the image to 0 at its border: a point crossing the border
-            # must not switch its weight on or off (a jump in the solution that float rounding triggers)
-            u, v = uv[..., 0], uv[..., 1]
-            inside = torch.minimum(torch.minimum(u, w - 1 - u), torch.minimum(v, h - 1 - v)).clamp(0.0, 1.0)
-            r, gu, gv = s[:, :c] - ref, s[:, c:2 * c], s[:, 2 * c:]  # (B,C,N) each
-            wgt = weight * front * inside * gn.huber_weights((r * r).sum(1) / c, self.cfg.gn_huber)
-            H, g = gn.feature_normal_equations(gn.pixel_jacobian(Xt, K, scale), r, gu, gv, wgt)
-            M = gn.update(M, gn.damped_step(H, g, self.cfg.gn_damping))
-        return M
+        return gn.feature_align(M, X, torch.cat([f2, gx, gy], 1), f1.reshape(b, c, h * w),
+                                conf.reshape(b, h * w) * valid, K / scale, self.cfg.gn_iters, self.cfg.gn_huber,
+                                self.cfg.gn_damping)
 
     @full_precision
     def forward(self, hidden: dict, flows: dict, feats1: dict, feats2: dict, grey1: dict, grey2: dict,

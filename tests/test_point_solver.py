@@ -15,7 +15,7 @@ from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle, s
 from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
                                  textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
-from models.gauss_newton import gauss_jordan_solve, so3_exp_small  # noqa: E402
+from models.gauss_newton import gauss_jordan, so3_exp_small  # noqa: E402
 from models import gauss_newton as gn  # noqa: E402
 from models.point_solver import (SolverSettings, image_pyramids, masked_median, project, pyr_down,  # noqa: E402
                                  restore_explained, sample_at, solve, with_gradients)
@@ -63,7 +63,7 @@ def test_small_ops_against_numpy():
     A = rng.normal(size=(3, 6, 6))
     A = A @ A.transpose(0, 2, 1) + np.eye(6)
     b = rng.normal(size=(3, 6, 1))
-    assert np.abs(gauss_jordan_solve(_t(A), _t(b)).numpy() - np.linalg.solve(A, b)).max() < 1e-10
+    assert np.abs(gauss_jordan(torch.cat([_t(A), _t(b)], -1)).numpy() - np.linalg.solve(A, b)).max() < 1e-10
     w = np.array([[0.01, -0.02, 0.03]])
     assert np.abs(so3_exp_small(_t(w))[0].numpy() - axis_angle_to_rot(w[0])).max() < 1e-12
     a = rng.uniform(size=(2, 9))
