@@ -9,7 +9,7 @@ from models.config import D3LVOConfig
 from models.correlation import correlation_slices, correlation_stacked, correlation_tiled, cost_volume, l2_normalise
 from models.d3lvo import D3LVO
 from models.flow import upsample_flow, warp
-from models.layers import adaptive_avg_pool, inverse_depth
+from models.layers import adaptive_avg_pool, inverse_depth, resize_like, upsample_bilinear
 from models.loss import PoseLoss
 from models.pose import pose_to_matrix
 
@@ -129,6 +129,22 @@ def test_warp_shifts_by_the_flow():
 def test_adaptive_pool_matches_torch_for_uneven_sizes():
     x = torch.randn(2, 3, 11, 38)
     torch.testing.assert_close(adaptive_avg_pool(x, (2, 6)), torch.nn.functional.adaptive_avg_pool2d(x, (2, 6)))
+
+
+@pytest.mark.parametrize("factor", [2, 3, 4])
+def test_upsampling_by_phases_is_bilinear_interpolation(factor):
+    """The convolution + pixel-shuffle form against torch's bilinear interpolation (half-pixel
+    centres, clamped at the border), and resize_like takes it only for one channel and a whole factor."""
+    x = torch.randn(2, 1, 7, 9, dtype=torch.float64)
+    ref = torch.nn.functional.interpolate(x, scale_factor=factor, mode="bilinear", align_corners=False)
+    torch.testing.assert_close(upsample_bilinear(x, factor), ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(resize_like(x, ref), ref, rtol=0, atol=1e-12)
+    # by hand at factor 2: output 1 of a row is 3/4 of input 0 and 1/4 of input 1; output 0 is the border value
+    row = torch.tensor([[[[1.0, 5.0]]]], dtype=torch.float64)
+    torch.testing.assert_close(upsample_bilinear(row, 2)[0, 0, 0], torch.tensor([1.0, 2.0, 4.0, 5.0], dtype=torch.float64))
+    many = torch.randn(1, 3, 5, 6)  # several channels: F.interpolate itself
+    torch.testing.assert_close(resize_like(many, torch.zeros(1, 1, 5 * factor, 6 * factor)),
+                               torch.nn.functional.interpolate(many, scale_factor=factor, mode="bilinear", align_corners=False))
 
 
 def test_attention_equations_by_hand():
