@@ -137,18 +137,7 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
     cache = openvino_cache_dir(openvino.__version__)
     if cache is None:
         return False
-    return all((cache / _marker(replace(sc, threads=1) if single_thread_stage(manifest, n, "openvino") else sc, n,
-                                st["sha256"])).is_file() for n, st in manifest.get("stages", {}).items())
-
-
-def single_thread_stage(manifest: dict, stage: str, backend: str) -> bool:
-    """OpenVINO runs the point solver's flow+pose graph on one thread: most of its ~7,000 nodes
-    are 6x6 matrices and lists of 2,048 points, too small to split, and there a second thread
-    costs more than it gains (36 against 39 ms on an Intel Xeon; no faster on an AMD EPYC);
-    onnxruntime gains from it (44 against 51 ms on the Intel Xeon), measured with `d3lvo bench`
-    (docs/performance.md)."""
-    inputs = manifest.get("stages", {}).get(stage, {}).get("inputs", [])
-    return backend == "openvino" and stage == "flowpose" and any(i["name"] == "points1" for i in inputs)
+    return all((cache / _marker(sc, n, st["sha256"])).is_file() for n, st in manifest.get("stages", {}).items())
 
 
 def available_backends() -> list[str]:

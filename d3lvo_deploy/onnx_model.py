@@ -9,14 +9,13 @@ returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1'
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-# SessionConfig and the onnxruntime settings are re-exported: they lived here before backends.py
+# SessionConfig and the onnxruntime settings, re-exported for code that imports them from here
 from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig,  # noqa: F401
-                       open_session, single_thread_stage)
+                       open_session)
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import load_manifest
@@ -69,8 +68,7 @@ class StageModel:
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
         for name, st in self.manifest["stages"].items():
             path = self.dir / st["file"]
-            sess = open_session(path, replace(sc, threads=1) if single_thread_stage(self.manifest, name, sc.backend) else sc,
-                                name, st)
+            sess = open_session(path, sc, name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for

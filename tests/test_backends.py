@@ -238,3 +238,17 @@ def test_onnxruntime_keeps_its_optimised_graphs(small_model, small_synth, tmp_pa
     assert files["completion"].stat().st_size > 1000  # rewritten from the optimiser
     # no cache for another optimisation level: the optimiser's output is what that level asks for
     assert ort_cache_file(SessionConfig(optimization="basic"), "completion", first.manifest["stages"]["completion"]) is None
+
+
+@needs_openvino
+def test_every_stage_runs_on_the_threads_asked_for():
+    """--threads is every stage's thread count on both engines, the point solver's flow+pose too
+    (one thread for that stage on OpenVINO slowed every stage on an AMD EPYC, docs/performance.md)."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+
+    ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2))
+    ov_m = StageModel(bundled_model_dir(), SessionConfig(backend="openvino", threads=2))
+    assert ov_m.point_solver and set(ov_m.sessions) == {"completion", "encoder", "flowpose"}
+    for name in ov_m.sessions:
+        assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == 2, name
+        assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == 2, name
