@@ -243,7 +243,8 @@ def test_onnxruntime_keeps_its_optimised_graphs(small_model, small_synth, tmp_pa
 @needs_openvino
 def test_every_stage_runs_on_the_threads_asked_for():
     """--threads is every stage's thread count on both engines, the point solver's flow+pose too
-    (one thread for that stage on OpenVINO slowed every stage on an AMD EPYC, docs/performance.md)."""
+    (two threads measured faster than one for that stage on OpenVINO on an AMD EPYC,
+    docs/performance.md)."""
     from d3lvo_deploy.bundled import bundled_model_dir
 
     ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2))
