@@ -43,11 +43,11 @@ def resize_like(x: torch.Tensor, ref: torch.Tensor, mode: str = "bilinear") -> t
     return F.interpolate(x, size=size, mode=mode)
 
 
-@functools.lru_cache(maxsize=None)
 def _phase_weights(factor: int) -> torch.Tensor:
     """(factor^2, 1, 3, 3): output phase (ky, kx) of a bilinear upsampling by `factor` (half-pixel
     centres) as weights on the 3x3 input neighbourhood: source offset o = (k + 0.5) / factor - 0.5
-    splits between the centre and the neighbour on o's side."""
+    splits between the centre and the neighbour on o's side. Built per call (a few numbers, a
+    constant in a traced graph): a cached tensor makes torch.compile warn on every compile."""
     taps = []
     for k in range(factor):
         o = (k + 0.5) / factor - 0.5
