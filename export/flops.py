@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnx.numpy_helper
 
 
-def _shapes(model: onnx.ModelProto) -> dict[str, list[int]]:
-    g = onnx.shape_inference.infer_shapes(model).graph
-    out: dict[str, list[int]] = {}
+def _shapes(g: onnx.GraphProto, outer: dict[str, list[int]]) -> dict[str, list[int]]:
+    out = dict(outer)
     for v in list(g.value_info) + list(g.input) + list(g.output):
         dims = [d.dim_value for d in v.type.tensor_type.shape.dim]
         if dims and all(d > 0 for d in dims):
@@ -26,12 +26,18 @@ def _shapes(model: onnx.ModelProto) -> dict[str, list[int]]:
     return out
 
 
-def graph_flops(path: str | Path) -> float:
-    """FLOPs of one run of the graph (batch as exported)."""
-    model = onnx.load(str(path))
-    shape = _shapes(model)
+def _trips(g: onnx.GraphProto, name: str) -> int:
+    """A Loop's trip-count input, where a Constant gives it (the point solver's loops)."""
+    for n in g.node:
+        if n.op_type == "Constant" and n.output[0] == name:
+            return int(onnx.numpy_helper.to_array(n.attribute[0].t))
+    raise ValueError(f"Loop trip count {name!r} is not a Constant")
+
+
+def _graph_flops(g: onnx.GraphProto, outer: dict[str, list[int]]) -> float:
+    shape = _shapes(g, outer)
     total = 0.0
-    for n in model.graph.node:
+    for n in g.node:
         ins = [shape.get(i) for i in n.input]
         outs = [shape.get(o) for o in n.output]
         if n.op_type == "Conv" and ins[1] and outs[0]:
@@ -44,4 +50,11 @@ def graph_flops(path: str | Path) -> float:
             trans_a = any(a.name == "transA" and a.i for a in n.attribute)
             k = ins[0][-2] if trans_a else ins[0][-1]
             total += 2.0 * np.prod(outs[0]) * k
+        elif n.op_type == "Loop":  # every trip, as if it never stopped early: an upper bound
+            total += _trips(g, n.input[0]) * _graph_flops(n.attribute[0].g, shape)
     return float(total)
+
+
+def graph_flops(path: str | Path) -> float:
+    """FLOPs of one run of the graph (batch as exported)."""
+    return _graph_flops(onnx.shape_inference.infer_shapes(onnx.load(str(path))).graph, {})

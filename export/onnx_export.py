@@ -30,6 +30,7 @@ from models.point_solver import image_pyramids, pyramid_input_names
 from models.pose_gn import nominal_intrinsics
 
 from .flops import graph_flops
+from .solver_loop import has_placeholders, splice_loops
 from .stages import CompletionStage, EncoderStage, FlowPoseStage
 
 DEFAULT_OPSET = 17  # GridSample needs 16+
@@ -125,6 +126,9 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
         warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below
         torch.onnx.export(module, args, str(path), input_names=module.input_names, output_names=module.output_names,
                           opset_version=opset, dynamo=False, do_constant_folding=True, dynamic_axes=dynamic)
+    m = onnx.load(str(path))
+    if has_placeholders(m):
+        onnx.save(splice_loops(m, opset, dynamic_batch), str(path))
     _declare_output_shapes(path, module, args, dynamic_batch)
 
 

@@ -4,16 +4,17 @@ Frame t-1's textured LiDAR returns (`d3lvo_deploy.points.textured_points`, a fix
 a mask) are moved by the running motion, projected into frame t's grey image and its pyrDown
 levels, and the photometric residual is minimised coarse to fine. Each level re-estimates a Huber
 threshold from the residuals' median (1.345 x 1.4826 x MAD, every `scale_every` steps), takes up to `iterations[l]`
-damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps, so
-the unrolled graph computes what a loop with `break` computes). The network's only say is a
+damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps; the
+steps run in blocks of `scale_every`, and at a block boundary after the stop PyTorch breaks and
+the exported graph's Loop ends). The network's only say is a
 weight per point, its confidence; with every confidence 1 this is exactly the classical tracker
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
 Standard ONNX ops only: the image pyramids are inputs (`image_pyramids`; cv2 at run time),
 GridSample does the bilinear samples, TopK the median, MatMul the normal equations and
-Gauss-Jordan elimination the 6x6 solve. A step is ~140 graph ops, and the 45 steps are most of
-the flow+pose stage's nodes: its time is per-op overhead, not arithmetic, so `align_level` is
-written for few ops (docs/performance.md).
+Gauss-Jordan elimination the 6x6 solve, Loop the blocks of steps (`export/solver_loop.py`). A
+step is ~140 graph ops: its time is per-op overhead, not arithmetic, so `gn_steps` is written for
+few ops (docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
 
@@ -106,30 +107,19 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return (k / r.abs().clamp(min=1e-12)).clamp(max=1.0)
 
 
-def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
-                K: torch.Tensor, weight: torch.Tensor, median_mask: torch.Tensor, iterations: int,
-                s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
-    """Up to `iterations` Gauss-Newton steps of sum_n weight_n huber(I_t(pi(R X_n + t)) - ref_n).
-    R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- dR t + rho.
-    stack (B,3,h,w): frame t's grey and its derivatives (`with_gradients`).
-    Laid out for a short graph (each op costs microseconds, whatever its size): points along the
-    last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
-    GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]."""
-    dtype = X.dtype
-    size = image_size(stack, dtype).flip(0)  # (w, h)
-    G = grid_intrinsics(K, size)
-    f = K[:, 0:2, None]  # (B,2,1)
-    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
-    P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
-    ref = ref.unsqueeze(1)  # (B,1,N)
-    weight = weight.unsqueeze(1)
-    w_ok = (weight > 0).to(dtype)
-    median_mask = median_mask.unsqueeze(1)
-    roll, roll_back, diff = literal(ROLL, X), literal(ROLL_BACK, X), literal(DIFF, X)
-    diagonal = literal([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
-    to_last = literal([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
-    active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
-    for i in range(iterations):
+def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
+             G: torch.Tensor, f: torch.Tensor, weight: torch.Tensor, w_ok: torch.Tensor, median_mask: torch.Tensor,
+             steps: int, s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
+    """`steps` damped Gauss-Newton steps of `align_level` from the pose P (B,3,4) on the points Xh
+    (B,4,N), the first one at a multiple of `s.scale_every` (it re-estimates the Huber threshold).
+    active (B,1,1) is 1 until a step falls below `s.stop_step`; a stopped level's steps are 0.
+    Also the body of the exported graph's Loop (`export/solver_loop.py`), so all its inputs are
+    tensors of the outer graph."""
+    roll, roll_back, diff = literal(ROLL, Xh), literal(ROLL_BACK, Xh), literal(DIFF, Xh)
+    diagonal = literal([[8 * i] for i in range(6)], Xh).long()  # H's diagonal in [H | g] flattened
+    to_last = literal([[0.0, 0.0, 0.0, 1.0]], Xh)  # rho (B,3,1) -> (B,3,4) as the translation column
+    dtype = Xh.dtype
+    for i in range(steps):
         Xt = P @ Xh  # (B,3,N)
         z = Xt[:, 2:3]
         zi = torch.reciprocal(z.clamp(min=0.1))
@@ -151,6 +141,66 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
         xi = scaled_solve(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
         P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
         active = active * (xi.abs().amax(1, keepdim=True) >= s.stop_step).to(dtype)
+    return P, active
+
+
+class _GaussNewtonLoop(torch.autograd.Function):
+    """`trips` blocks of `s.scale_every` steps; in an ONNX export one placeholder node that
+    `export/solver_loop.py` replaces by a standard Loop over `gn_steps`, which ends when the level
+    has stopped (the unrolled graph would compute the same zero steps to the end)."""
+
+    @staticmethod
+    def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings):
+        for _ in range(trips):
+            P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, s.scale_every, s)
+        return P, active
+
+    @staticmethod
+    def symbolic(g, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings):
+        out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
+                   trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping,
+                   capacity_i=Xh.type().sizes()[-1], outputs=2)
+        for o, like in zip(out, (P, active)):
+            o.setType(like.type())
+        return out
+
+
+LOOP_DOMAIN, LOOP_OP = "d3lvo", "GaussNewtonLoop"
+
+
+def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
+                K: torch.Tensor, weight: torch.Tensor, median_mask: torch.Tensor, iterations: int,
+                s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
+    """Up to `iterations` Gauss-Newton steps of sum_n weight_n huber(I_t(pi(R X_n + t)) - ref_n).
+    R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- dR t + rho.
+    stack (B,3,h,w): frame t's grey and its derivatives (`with_gradients`).
+    Laid out for a short graph (each op costs microseconds, whatever its size): points along the
+    last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
+    GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]. The steps
+    run in blocks of `s.scale_every` and stop at the first block boundary after the level has
+    stopped: in PyTorch a `break` (not under torch.compile), in an ONNX export a Loop (a stopped
+    level's steps are 0, so both give what running every step gives)."""
+    dtype = X.dtype
+    size = image_size(stack, dtype).flip(0)  # (w, h)
+    G = grid_intrinsics(K, size)
+    f = K[:, 0:2, None]  # (B,2,1)
+    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
+    P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
+    ctx = (Xh, ref.unsqueeze(1), stack, G, f, weight.unsqueeze(1), (weight > 0).to(dtype).unsqueeze(1),
+           median_mask.unsqueeze(1))
+    active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
+    trips, rest = divmod(iterations, s.scale_every)
+    if torch.onnx.is_in_onnx_export() and trips > 1:
+        P, active = _GaussNewtonLoop.apply(P, active, *ctx, trips, s)
+    else:
+        # torch.compile takes every block: a data-dependent break would split its fused graph
+        may_break = not (torch.jit.is_tracing() or torch.compiler.is_compiling())
+        for _ in range(trips):
+            if may_break and not bool(active.amax() > 0):
+                break
+            P, active = gn_steps(P, active, *ctx, s.scale_every, s)
+    if rest:
+        P, active = gn_steps(P, active, *ctx, rest, s)
     return P[:, :, :3], P[:, :, 3:].transpose(1, 2)
 
 

@@ -176,14 +176,14 @@ def test_confidence_one_is_the_numpy_tracker(scale_every, refine):
 
 @pytest.fixture(scope="session")
 def points_model(tmp_path_factory):
-    """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 5 Gauss-Newton steps per
-    level instead of 15: the unrolled graph exports in a third of the time, and 5 steps from the
+    """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 6 Gauss-Newton steps per
+    level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
     constant-velocity start still converge on the test drive's small motions."""
     from conftest import built_once, make_checkpoint
     from export.onnx_export import ExportConfig, export_checkpoint
 
     d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
-        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(5, 5, 5)), ExportConfig(out=d / "onnx")))
+        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6)), ExportConfig(out=d / "onnx")))
     return d / "ck.pt", d / "onnx"
 
 
@@ -216,7 +216,7 @@ def test_direct_method_is_the_models_classical_mode(points_model):
     assert dc.iterations == (3, 2) and dc.levels == 2
     assert dc.points.capacity == 999 and dc.points.min_gradient == 0.05
     assert dc.stop_step == 3e-5 and dc.damping == 7e-3
-    assert DirectConfig.of_model(cfg).iterations == (5, 5, 5)  # the fixture's
+    assert DirectConfig.of_model(cfg).iterations == (6, 6, 6)  # the fixture's
     from models.config import D3LVOConfig
 
     defaults = D3LVOConfig.small(pose_head="points").to_dict()
@@ -225,18 +225,28 @@ def test_direct_method_is_the_models_classical_mode(points_model):
 
 def test_export_set_reaches_the_graph(points_model, tmp_path):
     """`d3lvo export --set` changes the exported solver, not only the manifest: a median (one
-    TopK) at every pt_scale_every-th step of a level, so the fixture's (5, 5, 5) with the default
+    TopK) at every pt_scale_every-th step of a level, so the fixture's (6, 6, 6) with the default
     3 (steps 0 and 3) gives 6 TopK nodes and pt_iters=3,2 with pt_scale_every=1 gives 5; the point
-    list is pt_capacity long."""
+    list is pt_capacity long. A Loop's TopKs count once per trip it may take (its trip-count input)."""
     from typer.testing import CliRunner
 
     from cli.main import app
     from d3lvo_deploy.manifest import load_manifest
 
+    def topks(g):
+        consts = {n.output[0]: n for n in g.node if n.op_type == "Constant"}
+        count = 0
+        for n in g.node:
+            count += n.op_type == "TopK"
+            if n.op_type == "Loop":
+                trips = int(onnx.numpy_helper.to_array(consts[n.input[0]].attribute[0].t))
+                count += trips * topks(n.attribute[0].g)
+        return count
+
     def topk_and_capacity(folder):
         g = onnx.load(str(folder / "flowpose.onnx")).graph
         points = next(i for i in g.input if i.name == "points1")
-        return sum(n.op_type == "TopK" for n in g.node), points.type.tensor_type.shape.dim[1].dim_value
+        return topks(g), points.type.tensor_type.shape.dim[1].dim_value
 
     ck, default_dir = points_model
     assert topk_and_capacity(default_dir) == (6, 2048)
@@ -377,3 +387,72 @@ def test_solver_samples_trace_under_torch_compile():
     im = img[0, 0].numpy()
     ref = 0.5 * (0.75 * im[7, 12] + 0.25 * im[7, 13]) + 0.5 * (0.75 * im[8, 12] + 0.25 * im[8, 13])
     assert abs(float(got[0, 0, 0]) - ref) < 1e-9
+
+
+class _Level(torch.nn.Module):
+    """One level of the solver, `align_level`, as a graph of its own."""
+
+    def __init__(self, iterations: int):
+        super().__init__()
+        self.iterations = iterations
+
+    def forward(self, R, t, X, ref, stack, K, weight):
+        from models.point_solver import align_level
+
+        return align_level(R, t, X, ref, stack, K, weight, (weight > 0.5).float(), self.iterations, SolverSettings())
+
+
+def test_the_exported_loop_is_the_steps_and_ends_when_the_level_stops(tmp_path, monkeypatch):
+    """One level of 15 steps (5 blocks of 3) on the textured plane from a start 2 cm off: PyTorch
+    breaks after the block in which the level stops, and gives what computing every block gives
+    (a stopped level's steps are zero); the exported graph holds a standard Loop that gives the
+    same pose on onnxruntime and runs as many blocks as PyTorch (its GridSamples counted in an
+    onnxruntime profile), fewer than 5."""
+    import json
+
+    import onnxruntime as ort
+
+    import models.point_solver as ps
+    from export.solver_loop import splice_loops
+
+    A = make_se3(axis_angle_to_rot([0.002, -0.004, 0.001]), [0.02, -0.01, 0.3])
+    calib, _, (g0, g1, pts, mask), _ = _plane_inputs(A, capacity=2048)
+    start = se3_inv(make_se3(axis_angle_to_rot([0.002, -0.004, 0.001]), [0.02, -0.01, 0.32]))
+    K = _k(calib.K2).float()
+    X = pts.float()
+    args = (torch.tensor(start[None, :3, :3], dtype=torch.float32), torch.tensor(start[None, None, :3, 3], dtype=torch.float32),
+            X, sample_at(g0.float(), project(X, K)[0])[:, 0], with_gradients(g1.float()), K, mask.float())
+    level = _Level(15).eval()
+
+    blocks = []
+    steps = ps.gn_steps
+    monkeypatch.setattr(ps, "gn_steps", lambda *a: blocks.append(1) or steps(*a))
+    R, t = level(*args)
+    ran = len(blocks)
+    with monkeypatch.context() as m:
+        m.setattr(torch.jit, "is_tracing", lambda: True)  # no break: every block computed
+        R_all, t_all = level(*args)
+    assert 1 < ran < 5 and len(blocks) == ran + 5
+    assert torch.equal(R, R_all) and torch.equal(t, t_all)
+    truth = se3_inv(A)
+    assert np.abs(t[0, 0].numpy() - truth[:3, 3]).max() < 2e-3  # it converged, not merely stopped
+
+    path = tmp_path / "level.onnx"
+    names = ["R", "t", "X", "ref", "stack", "K", "weight"]
+    torch.onnx.export(level, args, str(path), input_names=names, output_names=["R_out", "t_out"], opset_version=17,
+                      dynamo=False)
+    model = splice_loops(onnx.load(str(path)), 17, False)
+    onnx.checker.check_model(model, full_check=True)
+    assert [n.op_type for n in model.graph.node].count("Loop") == 1
+    assert {o.domain for o in model.opset_import} <= {"", "ai.onnx"}
+    onnx.save(model, str(path))
+    so = ort.SessionOptions()
+    so.enable_profiling, so.profile_file_prefix = True, str(tmp_path / "prof")
+    sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    R_onnx, t_onnx = sess.run(None, {n: a.numpy() for n, a in zip(names, args)})
+    events = json.loads(open(sess.end_profiling()).read())
+    samples = sum(e.get("cat") == "Node" and e["name"].endswith("_kernel_time") and e["args"].get("op_name") == "GridSample"
+                  for e in events)
+    np.testing.assert_allclose(R_onnx, R.numpy(), atol=1e-5)
+    np.testing.assert_allclose(t_onnx, t.numpy(), atol=1e-5)
+    assert samples == 3 * ran
