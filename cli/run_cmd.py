@@ -222,7 +222,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         frames = (len(seq) if end is None else min(end, len(seq))) - start
         sc, why = choose_engine(sc, manifest, frames)
         if sc.backend == "openvino" and not openvino_compiled(sc, manifest):
-            loading = "compiling the model for OpenVINO (the first time on this CPU: ~10 s, cached for later runs)"
+            loading = "compiling the model for OpenVINO (the first time on this CPU only; cached for later runs)"
     if viz is not None and (method != "d3lvo" or viz_every < 1):
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
     if rerun is not None and viz_every < 1:

@@ -89,12 +89,13 @@ class SessionConfig:
 
 
 # "auto" on a short run. Measured with `d3lvo run` on the 20 real frames, bundled model, AMD EPYC
-# (AVX-512), 2 cores: onnxruntime's first pose after 2.2 s (0.7 s once its optimised graphs are
-# cached); OpenVINO's after 9.1 s the first time (compiling) and 2.5 s once cached; per frame
-# OpenVINO then saves ~17 ms (58 vs 75 ms, `d3lvo bench`). So OpenVINO pays back after ~110 frames
-# when cached and ~500 when not; auto takes it from these lengths on, onnxruntime below
-AUTO_MIN_FRAMES_CACHED = 200
-AUTO_MIN_FRAMES = 1000
+# (AVX-512), 2 cores, twice: onnxruntime's first pose after 0.9-1.0 s (0.5 s once its optimised
+# graphs are cached); OpenVINO's after 2.0-2.3 s the first time (compiling) and 0.8-0.9 s once
+# cached; per frame OpenVINO then saves ~13 ms (30.4 vs 43.1 and 44.2 vs 59.1 ms, `d3lvo bench
+# --no-torch --backend B`). So OpenVINO pays back after ~30 frames when cached and ~110 when not;
+# auto takes it from about twice these lengths on, onnxruntime below
+AUTO_MIN_FRAMES_CACHED = 60
+AUTO_MIN_FRAMES = 200
 
 
 def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) -> tuple[SessionConfig, str]:
@@ -115,10 +116,10 @@ def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) 
     need = AUTO_MIN_FRAMES_CACHED if cached else AUTO_MIN_FRAMES
     if frames >= need:
         return ov, (f"auto: OpenVINO, the faster engine here; over {frames} frames it repays its "
-                    + ("load from the cache" if cached else "first compile (~10 s)"))
+                    + ("load from the cache" if cached else "first compile"))
     return replace(sc, backend="onnxruntime"), (
         f"auto: {frames} frames are too few to repay OpenVINO's "
-        + ("load (~2 s more than onnxruntime's)" if cached else "first compile of this model (~10 s)")
+        + ("load from the cache" if cached else "first compile of this model")
         + f"; it takes OpenVINO from {need} frames on")
 
 
