@@ -106,6 +106,7 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
     steps; drops the placeholder's opset import, so that the graph holds standard ops only."""
     nodes = []
     blocks: dict[tuple, onnx.GraphProto] = {}
+    loops = 0
     for node in model.graph.node:
         if not (node.domain == LOOP_DOMAIN and node.op_type == LOOP_OP):
             nodes.append(node)
@@ -116,7 +117,8 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
             s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"])
             blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch)
         trips = a["trips"]
-        prefix = f"gn_loop{len(nodes)}/"
+        prefix = f"gn_loop{loops}/"
+        loops += 1
         body = _renamed_body(blocks[key], list(node.input[CARRIED:]), prefix)
         nodes += [helper.make_node("Constant", [], [prefix + "trips"], value=helper.make_tensor(
                       prefix + "trips", TensorProto.INT64, [], [trips])),

@@ -206,6 +206,30 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
 
 
+def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path):
+    """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
+    of two pairs (different start motions, so their levels stop at different blocks) gives each
+    pair the pose it gets alone."""
+    import onnxruntime as ort
+
+    from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
+    from export.stages import flowpose_input_names
+    from models.checkpoint import build_model, load_checkpoint
+
+    ck, _ = points_model
+    export_checkpoint(ck, ExportConfig(out=tmp_path / "dyn", dynamic_batch=True))
+    model = build_model(load_checkpoint(ck))
+    names = flowpose_input_names(model)
+    one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
+    other = dict(one, init_pose=make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.1, 0.0, 1.0])[None].astype(np.float32),
+                 **{n: np.roll(one[n], 1, -1) for n in names if n.startswith("stack2_p")})  # frame t moved on
+    sess = ort.InferenceSession(str(tmp_path / "dyn" / "flowpose.onnx"), providers=["CPUExecutionProvider"])
+    alone = [sess.run(["matrix"], feeds)[0][0] for feeds in (one, other)]
+    both = sess.run(["matrix"], {n: np.concatenate([one[n], other[n]]) for n in names})[0]
+    assert np.abs(alone[0] - alone[1]).max() > 1e-3  # two different problems
+    np.testing.assert_allclose(both, np.stack(alone), atol=1e-5)
+
+
 def test_direct_method_is_the_models_classical_mode(points_model):
     """`--method direct` takes the point selection and solver settings of the model it stands for."""
     from d3lvo_deploy.manifest import load_manifest
