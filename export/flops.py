@@ -26,7 +26,7 @@ def _shapes(g: onnx.GraphProto, outer: dict[str, list[int]]) -> dict[str, list[i
     return out
 
 
-def _trips(g: onnx.GraphProto, name: str) -> int:
+def loop_trips(g: onnx.GraphProto, name: str) -> int:
     """A Loop's trip-count input, where a Constant gives it (the point solver's loops)."""
     for n in g.node:
         if n.op_type == "Constant" and n.output[0] == name:
@@ -51,7 +51,7 @@ def _graph_flops(g: onnx.GraphProto, outer: dict[str, list[int]]) -> float:
             k = ins[0][-2] if trans_a else ins[0][-1]
             total += 2.0 * np.prod(outs[0]) * k
         elif n.op_type == "Loop":  # every trip, as if it never stopped early: an upper bound
-            total += _trips(g, n.input[0]) * _graph_flops(n.attribute[0].g, shape)
+            total += loop_trips(g, n.input[0]) * _graph_flops(n.attribute[0].g, shape)
     return float(total)
 
 

@@ -144,6 +144,9 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
     return P, active
 
 
+LOOP_DOMAIN, LOOP_OP = "d3lvo", "GaussNewtonLoop"  # the placeholder `export/solver_loop.py` replaces
+
+
 class _GaussNewtonLoop(torch.autograd.Function):
     """`trips` blocks of `s.scale_every` steps; in an ONNX export one placeholder node that
     `export/solver_loop.py` replaces by a standard Loop over `gn_steps`, which ends when the level
@@ -165,9 +168,6 @@ class _GaussNewtonLoop(torch.autograd.Function):
         for o, like in zip(out, (P, active)):
             o.setType(like.type())
         return out
-
-
-LOOP_DOMAIN, LOOP_OP = "d3lvo", "GaussNewtonLoop"
 
 
 def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,

@@ -256,16 +256,11 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
 
     from cli.main import app
     from d3lvo_deploy.manifest import load_manifest
+    from export.flops import loop_trips
 
     def topks(g):
-        consts = {n.output[0]: n for n in g.node if n.op_type == "Constant"}
-        count = 0
-        for n in g.node:
-            count += n.op_type == "TopK"
-            if n.op_type == "Loop":
-                trips = int(onnx.numpy_helper.to_array(consts[n.input[0]].attribute[0].t))
-                count += trips * topks(n.attribute[0].g)
-        return count
+        return sum(loop_trips(g, n.input[0]) * topks(n.attribute[0].g) if n.op_type == "Loop" else n.op_type == "TopK"
+                   for n in g.node)
 
     def topk_and_capacity(folder):
         g = onnx.load(str(folder / "flowpose.onnx")).graph
