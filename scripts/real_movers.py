@@ -22,13 +22,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from kiss_icp.config import KISSConfig
-from kiss_icp.kiss_icp import KissICP
 
 from d3lvo_deploy.backends import SessionConfig
 from d3lvo_deploy.bundled import bundled_model_dir
+from d3lvo_deploy.lidar_reference import kiss_icp_poses
 from d3lvo_deploy.metrics import auroc
 from d3lvo_deploy.odometry import Odometry
+from d3lvo_deploy.points import project
 from d3lvo_deploy.sequence import KittiSequence
 
 ROAD_Z = -1.4  # velodyne z (m) above which a return is not the road (the sensor is 1.73 m up)
@@ -49,18 +49,6 @@ class Nearest:
     def query(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         idx, d2 = self.index.knnSearch(np.ascontiguousarray(q, np.float32), 1, params={"checks": 64})
         return np.sqrt(d2[:, 0]), idx[:, 0]
-
-
-def kiss_icp_poses(seq: KittiSequence) -> list[np.ndarray]:
-    cfg = KISSConfig()
-    cfg.data.deskew = False  # the scans carry no per-point times
-    cfg.mapping.voxel_size = cfg.data.max_range / 100.0
-    odo, poses = KissICP(cfg), []
-    for i in range(len(seq)):
-        pts = seq.scan(i)[:, :3].astype(np.float64)
-        odo.register_frame(pts, np.zeros(len(pts)))
-        poses.append(odo.last_pose.copy())
-    return poses
 
 
 def own_translation(q: np.ndarray, target: Nearest, iterations: int = 25) -> tuple[np.ndarray, float]:
@@ -89,10 +77,10 @@ def ego_motion(seq: KittiSequence, poses: list, a: int, b: int) -> np.ndarray:
 
 
 def in_box(seq: KittiSequence, scan: np.ndarray, box: tuple, max_depth: float) -> np.ndarray:
-    T, K = seq.calib.T_cam2_velo, seq.calib.K2
+    T = seq.calib.T_cam2_velo
     X = scan[:, :3] @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(X[:, 2], 0.5)
-    u, v = K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]
+    uv, _ = project(np.c_[X[:, :2], np.maximum(X[:, 2], 0.5)], seq.calib.K2)  # behind: masked below
+    u, v = uv.T
     x0, y0, x1, y1 = box
     keep = (X[:, 2] > 0.5) & (u >= x0) & (u <= x1) & (v >= y0) & (v <= y1) & (X[:, 2] < max_depth)
     return scan[keep & (scan[:, 2] > ROAD_Z), :3]
@@ -115,10 +103,12 @@ def main(seq_dir: str) -> None:
     odo.keep_outputs = True
     velo_from_cam = np.linalg.inv(seq.calib.T_cam2_velo)
     scores, labels = [], []
+    prev = None  # frame t-1's solver points: the list the pair's weights belong to
     for i in range(len(seq)):
-        prev = None if odo._prev is None else odo._prev["solver_frame"].points.copy()
-        odo.step(seq.image(i), seq.scan(i))
+        frame = odo.prepare(seq.image(i), seq.scan(i))
+        odo.step_prepared(frame)
         if prev is None:
+            prev = frame.solver.points
             continue
         w = odo.last["flowpose"]["point_weights"][0, : len(prev)]
         a = i - 1
@@ -132,6 +122,7 @@ def main(seq_dir: str) -> None:
         y[(d > 0.4) & ~road & near] = 1
         scores.append(1.0 - w[y >= 0])
         labels.append(y[y >= 0])
+        prev = frame.solver.points
     s, y = np.concatenate(scores), np.concatenate(labels)
     print(f"solver points of {len(seq) - 1} pairs: {int(y.sum())} moving, {int((1 - y).sum())} static by LiDAR; "
           f"mean weight {1 - s[y == 1].mean():.2f} moving, {1 - s[y == 0].mean():.2f} static; "

@@ -62,7 +62,7 @@ def test_confidence_separates_movers_and_beats_uniform_weights(busy_street):
 
 
 def test_real_frames_end_near_lidar_odometry():
-    """On the 20 real frames (a truck, a lead car and a passed car move around the camera) the
+    """On the 20 real frames (a cement truck and the car ahead move around the camera) the
     bundled network ends within 0.4 m of LiDAR-only KISS-ICP, its path within 10 % of KISS-ICP's."""
     from conftest import shared_path
     from test_direct import _kiss_icp_cam0

@@ -156,22 +156,13 @@ def test_cli_run_method_direct_scores(small_synth, tmp_path):
 
 
 def _kiss_icp_cam0(seq: KittiSequence) -> np.ndarray:
-    """KISS-ICP (LiDAR only, its defaults for a 100 m sensor, no deskewing: the scans carry no
-    per-point times) on the scans, moved into cam0: the independent reference for real frames."""
-    kiss = pytest.importorskip("kiss_icp.kiss_icp")
-    from kiss_icp.config import KISSConfig
+    """KISS-ICP's poses (`d3lvo_deploy.lidar_reference`) moved into cam0: the independent
+    reference for real frames."""
+    pytest.importorskip("kiss_icp.kiss_icp")
+    from d3lvo_deploy.lidar_reference import kiss_icp_poses
 
-    cfg = KISSConfig()
-    cfg.data.deskew = False
-    cfg.mapping.voxel_size = cfg.data.max_range / 100.0
-    odo = kiss.KissICP(cfg)
-    poses = []
-    for i in range(len(seq)):
-        pts = seq.scan(i)[:, :3].astype(np.float64)
-        odo.register_frame(pts, np.zeros(len(pts)))
-        poses.append(odo.last_pose.copy())
     Tr = seq.calib.Tr
-    return np.array([Tr @ p @ se3_inv(Tr) for p in poses])
+    return np.array([Tr @ p @ se3_inv(Tr) for p in kiss_icp_poses(seq)])
 
 
 def test_real_frames_end_near_lidar_odometry():
