@@ -85,7 +85,8 @@ def export_command(
                 seqs = list(calib_seq) or default_calibration(Path(tmpd))
             with console.status(f"converting to {precision}"):
                 m = quantize_folder(fp32_dir, out, precision, seqs)
-    size = sum((out / s["file"]).stat().st_size for s in m["stages"].values()) / 1e6
-    console.print(f"wrote {', '.join(s['file'] for s in m['stages'].values())} + manifest.json to {out} "
+    files = [f for s in m["stages"].values() for f in (s["file"], s.get("onnxruntime", {}).get("file")) if f]
+    size = sum((out / f).stat().st_size for f in files) / 1e6
+    console.print(f"wrote {', '.join(files)} + manifest.json to {out} "
                   f"({size:.1f} MB, {m['precision']}, opset {m['opset']}, {m['input']['width']}x{m['input']['height']})",
                   highlight=False)

@@ -17,6 +17,16 @@ MANIFEST_FORMAT = "d3lvo-onnx"
 MANIFEST_VERSION = 2
 STANDARD_DOMAINS = ("", "ai.onnx")
 STAGES = ("completion", "encoder", "flowpose")
+# a stage may also carry a graph of the same inputs and outputs for one engine, under that engine's
+# name: the flow+pose stage's `onnxruntime` graph takes its bilinear samples as Gathers (models/sampling.py)
+ENGINE_GRAPHS = ("onnxruntime",)
+
+
+def for_engine(st: dict, backend: str) -> dict:
+    """The manifest entry of a stage as `backend` opens it: its own graph's file and sha256 where
+    the export wrote one for that engine."""
+    own = st.get(backend) if backend in ENGINE_GRAPHS else None
+    return {**st, "file": own["file"], "sha256": own["sha256"]} if isinstance(own, dict) else st
 
 
 def sha256_file(path: Path) -> str:
@@ -56,9 +66,18 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
     for name, st in stages.items():
         if not isinstance(st, dict) or not isinstance(st.get("file"), str) or not isinstance(st.get("sha256"), str):
             raise D3LVOInputError(path, f"stage {name!r} has no file name or no sha256: re-export with `d3lvo export`")
-        f = model_dir / st["file"]
-        if not f.is_file():
-            raise D3LVOInputError(f, f"{name} model listed in the manifest is missing")
-        if verify_hashes and sha256_file(f) != st["sha256"]:
-            raise D3LVOInputError(f, "sha256 differs from manifest.json (modified or from another export)")
+        entries = [(name, st)]
+        for engine in ENGINE_GRAPHS:
+            own = st.get(engine)
+            if own is None:
+                continue
+            if not isinstance(own, dict) or not isinstance(own.get("file"), str) or not isinstance(own.get("sha256"), str):
+                raise D3LVOInputError(path, f"stage {name!r}: its {engine} graph has no file name or no sha256")
+            entries.append((f"{name} ({engine})", own))
+        for label, entry in entries:
+            f = model_dir / entry["file"]
+            if not f.is_file():
+                raise D3LVOInputError(f, f"{label} model listed in the manifest is missing")
+            if verify_hashes and sha256_file(f) != entry["sha256"]:
+                raise D3LVOInputError(f, "sha256 differs from manifest.json (modified or from another export)")
     return m

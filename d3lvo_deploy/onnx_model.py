@@ -18,7 +18,7 @@ from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, Sessi
                        open_session)
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
-from .manifest import load_manifest
+from .manifest import for_engine, load_manifest
 
 # the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
 # point solver's image pyramids `image1_pK`, `stack2_pK` too)
@@ -67,6 +67,7 @@ class StageModel:
         # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
         for name, st in self.manifest["stages"].items():
+            st = for_engine(st, self.backend)
             path = self.dir / st["file"]
             sess = open_session(path, sc, name, st)
             self._check_io(path, sess, st)

@@ -1,4 +1,4 @@
-"""`d3lvo export`: checkpoint -> completion.onnx, encoder.onnx, flowpose.onnx + manifest.json.
+"""`d3lvo export`: checkpoint -> completion.onnx, encoder.onnx, flowpose.onnx (+ flowpose.onnxruntime.onnx) + manifest.json.
 
 Uses torch's TorchScript-based exporter (`dynamo=False`): it needs no extra package, freezes the
 static shapes we want (the adaptive pooling bins are computed at export size), and emits only
@@ -27,6 +27,7 @@ from models.config import check_solver_settings
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
 from models.point_solver import image_pyramids, pyramid_input_names
+from models.sampling import gathered
 from models.pose_gn import nominal_intrinsics
 
 from .flops import graph_flops
@@ -132,6 +133,22 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
     _declare_output_shapes(path, module, args, dynamic_batch)
 
 
+def _export_checked(module, args, path: Path, ec: ExportConfig, meta: dict[str, str]) -> onnx.ModelProto:
+    """Export, stamp the metadata, check (`check_graph`)."""
+    _export_one(module, args, path, ec.opset, ec.dynamic_batch)
+    m = onnx.load(str(path))
+    for k, v in meta.items():
+        m.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
+    onnx.save(m, str(path))
+    return check_graph(path)
+
+
+def _has_op(graph: onnx.GraphProto, op: str) -> bool:
+    """Whether `op` occurs in graph or any subgraph (a Loop's body)."""
+    return any(n.op_type == op or any(_has_op(a.g, op) for a in n.attribute if a.type == onnx.AttributeProto.GRAPH)
+               for n in graph.node)
+
+
 def _declare_output_shapes(path: Path, module, args, dynamic_batch: bool) -> None:
     """The exporter's shape inference gives up behind the Gauss-Newton solver's elementwise
     Cholesky (outputs named `Concatpose_dim_0`...); the shapes are static, so write the traced
@@ -193,17 +210,20 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
     manifest_stages = {}
     for name, module in stages.items():
         path = out / f"{name}.onnx"
-        _export_one(module.eval(), inputs[name], path, ec.opset, ec.dynamic_batch)
-        m = onnx.load(str(path))
         meta = {"d3lvo_stage": name, "d3lvo_format": MANIFEST_FORMAT, "d3lvo_version": d3lvo_deploy.__version__,
                 "d3lvo_config": json.dumps(cfg.to_dict()), "d3lvo_input_size": f"{w}x{h}"}
-        for k, v in meta.items():
-            m.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
-        onnx.save(m, str(path))
-        m = check_graph(path)
+        m = _export_checked(module.eval(), inputs[name], path, ec, meta)
         ins, outs = _io_spec(m)
         manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs,
                                  "gflops": round(graph_flops(path) / 1e9, 4)}
+        if _has_op(m.graph, "GridSample"):
+            # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
+            own = path.with_name(f"{name}.onnxruntime.onnx")
+            with gathered():
+                m_own = _export_checked(module, inputs[name], own, ec, {**meta, "d3lvo_sampling": "gather"})
+            if _io_spec(m_own) != (ins, outs):
+                raise RuntimeError(f"{own.name}: inputs/outputs differ from {path.name}")
+            manifest_stages[name]["onnxruntime"] = {"file": own.name, "sha256": sha256(own)}
         if progress is not None:
             progress(name)
 

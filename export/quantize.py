@@ -11,6 +11,7 @@ per frame, U8S8 106 ms, U8S8 Conv-only 101 ms, FP32 85 ms.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import onnx
@@ -130,6 +131,11 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         check_graph(dst)
         manifest["stages"][name]["sha256"] = sha256(dst)
         manifest["stages"][name]["precision"] = stage_precision
+        if "onnxruntime" in st:  # onnxruntime's own FP32 graph: kept where the stage stays FP32
+            if stage_precision == "fp32":
+                shutil.copyfile(fp32_dir / st["onnxruntime"]["file"], out_dir / st["onnxruntime"]["file"])
+            else:
+                del manifest["stages"][name]["onnxruntime"]
     manifest["precision"] = precision
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
     return manifest

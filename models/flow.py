@@ -14,6 +14,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from . import sampling
 from .config import D3LVOConfig
 from .correlation import cost_volume
 from .layers import conv
@@ -21,7 +22,11 @@ from .layers import conv
 
 def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample x at p + flow(p) (bilinear, zeros outside): brings frame-2 features onto frame 1."""
-    b, _, h, w = x.shape
+    b, c, h, w = x.shape
+    if sampling.gathering():
+        ys = torch.arange(h, dtype=x.dtype, device=x.device).view(1, 1, h, 1).expand(b, 1, h, w)
+        xs = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, 1, w).expand(b, 1, h, w)
+        return sampling.bilinear(x, (torch.cat([xs, ys], 1) + flow).reshape(b, 2, h * w)).reshape(b, c, h, w)
     ys = torch.arange(h, dtype=x.dtype, device=x.device).view(1, h, 1).expand(b, h, w)
     xs = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, w).expand(b, h, w)
     gx = 2.0 * (xs + flow[:, 0]) / max(w - 1, 1) - 1.0

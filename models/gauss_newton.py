@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from . import sampling
+
 
 # [omega]x.flatten() = SKEW^T omega, written out as a literal: built with in-place writes, the
 # tracer would record every write as a graph op
@@ -120,6 +122,8 @@ def project(X: torch.Tensor, K: torch.Tensor, scale: float):
 
 def sample(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear sample (B,C,h,w) at level coordinates (B,N,2) -> (B,C,N); zeros outside."""
+    if sampling.gathering():
+        return sampling.bilinear(x, uv.transpose(1, 2))
     h, w = x.shape[-2:]
     gx = 2.0 * uv[..., 0] / max(w - 1, 1) - 1.0
     gy = 2.0 * uv[..., 1] / max(h - 1, 1) - 1.0
@@ -174,8 +178,11 @@ def feature_align(M: torch.Tensor, X: torch.Tensor, stack: torch.Tensor, ref: to
         # fades from 1 one cell inside the image to 0 at its border: a point crossing the border
         # must not switch its weight on or off (a jump in the solution that float rounding triggers)
         inside = ((1.0 - grid.abs()) * half).amin(1, keepdim=True).clamp(0.0, 1.0)
-        smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
-                            align_corners=True).reshape(b, 3, c, n)  # grey/features, d/du, d/dv
+        if sampling.gathering():  # outside the image `inside` is 0
+            smp = sampling.bilinear_inside(stack, grid).reshape(b, 3, c, n)
+        else:
+            smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
+                                align_corners=True).reshape(b, 3, c, n)  # grey/features, d/du, d/dv
         r = smp[:, :1] - ref  # (B,1,C,N)
         D = torch.cat([r, smp[:, 1:]], 1)
         S = (D[:, left] * D[:, right]).sum(2)  # (B,5,N)

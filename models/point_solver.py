@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from . import gauss_newton as gn
+from . import sampling
 from .gauss_newton import DIFF, ROLL, ROLL_BACK, grid_intrinsics, literal, scaled_solve, so3_exp_small
 from .layers import full_precision
 
@@ -71,6 +72,8 @@ def image_size(img: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
 def sample_at(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear (B,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w as
     `image_size`."""
+    if sampling.gathering():
+        return sampling.bilinear(img, uv.transpose(1, 2))
     size = image_size(img, uv.dtype)  # (h, w)
     gx = 2.0 * uv[..., 0] / (size[1] - 1) - 1.0
     gy = 2.0 * uv[..., 1] / (size[0] - 1) - 1.0
@@ -126,8 +129,11 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         grid = (G @ Xt)[:, :2] * zi  # (B,2,N) in [-1, 1] inside the image
         ok = ((grid.abs().amax(1, keepdim=True) <= 1.0) & (z > 0.1)).to(dtype) * w_ok
         active = active * (ok.sum(-1, keepdim=True) >= 12).to(dtype)  # too few: stop, as the tracker
-        smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
-                            align_corners=True)[:, :, 0]  # (B,3,N)
+        if sampling.gathering():  # outside the image `ok` is 0
+            smp = sampling.bilinear_inside(stack, grid)
+        else:
+            smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
+                                align_corners=True)[:, :, 0]  # (B,3,N)
         nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)

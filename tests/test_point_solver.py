@@ -321,6 +321,8 @@ def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, t
 
     m = quantize_folder(points_model[1], tmp_path / "int8", "int8", [small_synth])
     assert m["stages"]["flowpose"]["precision"] == "fp32" and m["stages"]["encoder"]["precision"] == "int8"
+    # onnxruntime's own FP32 flow+pose graph comes along with the stage (load_manifest checks its hash)
+    assert m["stages"]["flowpose"]["onnxruntime"] == load_manifest(points_model[1])["stages"]["flowpose"]["onnxruntime"]
     seq = KittiSequence.open(small_synth)
     odo = Odometry(tmp_path / "int8", seq.calib)
     poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(3)]
