@@ -114,15 +114,17 @@ def test_tampered_and_mismatched(exported, tmp_path):
     ck, out, _ = exported
     stages = load_manifest(out)["stages"]
     assert set(stages) == {"completion", "encoder", "flowpose"}
-    for name, st in stages.items():  # every file the manifest lists is checked, not only one
-        bad = tmp_path / f"bad_{name}"
+    # every file the manifest lists is checked, not only one: onnxruntime's own flow+pose graph too
+    files = [st["file"] for st in stages.values()] + [stages["flowpose"]["onnxruntime"]["file"]]
+    for file in files:
+        bad = tmp_path / f"bad_{file}"
         shutil.copytree(out, bad)
-        with open(bad / st["file"], "ab") as fh:
+        with open(bad / file, "ab") as fh:
             fh.write(b"\0")
-        with pytest.raises(D3LVOInputError, match=f"{st['file']}.*sha256"):
+        with pytest.raises(D3LVOInputError, match=f"{file}.*sha256"):
             StageModel(bad)
-        (bad / st["file"]).unlink()
-        with pytest.raises(D3LVOInputError, match=f"{st['file']}.*missing"):
+        (bad / file).unlink()
+        with pytest.raises(D3LVOInputError, match=f"{file}.*missing"):
             StageModel(bad)
     bad = tmp_path / "no_hash"
     shutil.copytree(out, bad)

@@ -78,16 +78,9 @@ def test_onnxruntime_graph_in_the_export(small_model, tmp_path):
     meta = sm.sessions["flowpose"].sess.get_modelmeta().custom_metadata_map
     assert meta.get("d3lvo_sampling") == "gather"
     assert for_engine(st, "openvino")["file"] == st["file"] and for_engine(st, "onnxruntime")["file"] == own["file"]
-    # a damaged or missing onnxruntime graph is refused by name, as the stages' own files
+    # an entry without its hash is refused (a damaged or missing file: test_export's tamper test)
     bad = tmp_path / "bad"
     shutil.copytree(out, bad)
-    with open(bad / own["file"], "ab") as fh:
-        fh.write(b"\0")
-    with pytest.raises(D3LVOInputError, match=f"{own['file']}.*sha256"):
-        StageModel(bad)
-    (bad / own["file"]).unlink()
-    with pytest.raises(D3LVOInputError, match=f"{own['file']}.*missing"):
-        StageModel(bad)
     mm = json.loads((out / "manifest.json").read_text())
     del mm["stages"]["flowpose"]["onnxruntime"]["sha256"]
     (bad / "manifest.json").write_text(json.dumps(mm))
