@@ -11,8 +11,9 @@ weight per point, its confidence; with every confidence 1 this is exactly the cl
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
 Standard ONNX ops only: the image pyramids are inputs (`image_pyramids`; cv2 at run time),
-GridSample does the bilinear samples, TopK the median, MatMul the normal equations and
-Gauss-Jordan elimination the 6x6 solve, Loop the blocks of steps (`export/solver_loop.py`). A
+GridSample does the bilinear samples (Gathers in onnxruntime's graph, `sampling`), TopK the
+median, MatMul the normal equations and Gauss-Jordan elimination the 6x6 solve, Loop the blocks
+of steps (`export/solver_loop.py`). A
 step is ~140 graph ops: its time is per-op overhead, not arithmetic, so `gn_steps` is written for
 few ops (docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
