@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.manifest import graph_files
 
 from .common import console, friendly_errors
 
@@ -85,7 +86,7 @@ def export_command(
                 seqs = list(calib_seq) or default_calibration(Path(tmpd))
             with console.status(f"converting to {precision}"):
                 m = quantize_folder(fp32_dir, out, precision, seqs)
-    files = [f for s in m["stages"].values() for f in (s["file"], s.get("onnxruntime", {}).get("file")) if f]
+    files = graph_files(m)
     size = sum((out / f).stat().st_size for f in files) / 1e6
     console.print(f"wrote {', '.join(files)} + manifest.json to {out} "
                   f"({size:.1f} MB, {m['precision']}, opset {m['opset']}, {m['input']['width']}x{m['input']['height']})",

@@ -29,6 +29,11 @@ def for_engine(st: dict, backend: str) -> dict:
     return {**st, "file": own["file"], "sha256": own["sha256"]} if isinstance(own, dict) else st
 
 
+def graph_files(m: dict) -> list[str]:
+    """Every graph file a (loaded) manifest lists: each stage's own, then its engines' graphs."""
+    return [e["file"] for st in m["stages"].values() for e in (st, *(st[k] for k in ENGINE_GRAPHS if k in st))]
+
+
 def sha256_file(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:

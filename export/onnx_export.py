@@ -49,22 +49,20 @@ class ExportConfig:
     solver: dict = field(default_factory=dict)
 
 
+def all_nodes(graph: onnx.GraphProto):
+    """Every node of graph, subgraphs (a Loop's body) included."""
+    for n in graph.node:
+        yield n
+        for a in n.attribute:
+            if a.g is not None and a.g.node:
+                yield from all_nodes(a.g)
+            for g in a.graphs:
+                yield from all_nodes(g)
+
+
 def non_standard_nodes(model: onnx.ModelProto) -> list[str]:
     """Every node (subgraphs included) whose domain is not the standard ONNX one."""
-    bad = []
-
-    def walk(graph):
-        for n in graph.node:
-            if n.domain not in STANDARD_DOMAINS:
-                bad.append(f"{n.op_type} (domain {n.domain!r})")
-            for a in n.attribute:
-                if a.g is not None and a.g.node:
-                    walk(a.g)
-                for g in a.graphs:
-                    walk(g)
-
-    walk(model.graph)
-    return bad
+    return [f"{n.op_type} (domain {n.domain!r})" for n in all_nodes(model.graph) if n.domain not in STANDARD_DOMAINS]
 
 
 def _io_spec(model: onnx.ModelProto) -> tuple[list[dict], list[dict]]:
@@ -143,12 +141,6 @@ def _export_checked(module, args, path: Path, ec: ExportConfig, meta: dict[str, 
     return check_graph(path)
 
 
-def _has_op(graph: onnx.GraphProto, op: str) -> bool:
-    """Whether `op` occurs in graph or any subgraph (a Loop's body)."""
-    return any(n.op_type == op or any(_has_op(a.g, op) for a in n.attribute if a.type == onnx.AttributeProto.GRAPH)
-               for n in graph.node)
-
-
 def _declare_output_shapes(path: Path, module, args, dynamic_batch: bool) -> None:
     """The exporter's shape inference gives up behind the Gauss-Newton solver's elementwise
     Cholesky (outputs named `Concatpose_dim_0`...); the shapes are static, so write the traced
@@ -216,7 +208,7 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         ins, outs = _io_spec(m)
         manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs,
                                  "gflops": round(graph_flops(path) / 1e9, 4)}
-        if _has_op(m.graph, "GridSample"):
+        if any(n.op_type == "GridSample" for n in all_nodes(m.graph)):
             # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
             own = path.with_name(f"{name}.onnxruntime.onnx")
             with gathered():

@@ -23,12 +23,11 @@ from .layers import conv
 def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample x at p + flow(p) (bilinear, zeros outside): brings frame-2 features onto frame 1."""
     b, c, h, w = x.shape
-    if sampling.gathering():
-        ys = torch.arange(h, dtype=x.dtype, device=x.device).view(1, 1, h, 1).expand(b, 1, h, w)
-        xs = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, 1, w).expand(b, 1, h, w)
-        return sampling.bilinear(x, (torch.cat([xs, ys], 1) + flow).reshape(b, 2, h * w)).reshape(b, c, h, w)
     ys = torch.arange(h, dtype=x.dtype, device=x.device).view(1, h, 1).expand(b, h, w)
     xs = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, w).expand(b, h, w)
+    if sampling.gathering():
+        uv = torch.stack([xs, ys], 1) + flow
+        return sampling.bilinear(x, uv.reshape(b, 2, h * w)).reshape(b, c, h, w)
     gx = 2.0 * (xs + flow[:, 0]) / max(w - 1, 1) - 1.0
     gy = 2.0 * (ys + flow[:, 1]) / max(h - 1, 1) - 1.0
     return F.grid_sample(x, torch.stack([gx, gy], -1), mode="bilinear", padding_mode="zeros", align_corners=True)

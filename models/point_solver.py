@@ -30,6 +30,7 @@ from . import gauss_newton as gn
 from . import sampling
 from .gauss_newton import DIFF, ROLL, ROLL_BACK, grid_intrinsics, literal, scaled_solve, so3_exp_small
 from .layers import full_precision
+from .sampling import image_size
 
 MAD_TO_SIGMA = 1.4826
 HUBER_K = 1.345
@@ -59,15 +60,6 @@ def with_gradients(g: torch.Tensor) -> torch.Tensor:
     gx = (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]) * 0.5
     gy = (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]) * 0.5
     return torch.cat([g, gx, gy], 1)
-
-
-def image_size(img: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """(h, w) of a (B,C,h,w) tensor as a tensor: in an ONNX export read from the graph's tensor
-    (a Shape op), so that the exported graph takes any image size; otherwise from the Python
-    shape (torch.compile traces `_shape_as_tensor` to a torch.Size)."""
-    if torch.onnx.is_in_onnx_export():
-        return torch._shape_as_tensor(img)[2:].to(dtype)
-    return torch.tensor(img.shape[2:], dtype=dtype, device=img.device)
 
 
 def sample_at(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

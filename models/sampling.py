@@ -39,11 +39,18 @@ def _corner_weights(fr: torch.Tensor) -> torch.Tensor:
     return (x @ a) * (y @ a)
 
 
-def _size(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """(1,2,1) (w, h) of a (B,C,h,w) tensor; in an ONNX export read from the graph (a Shape op)."""
+def image_size(img: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(h, w) of a (B,C,h,w) tensor as a tensor: in an ONNX export read from the graph's tensor
+    (a Shape op), so that the exported graph takes any image size; otherwise from the Python
+    shape (torch.compile traces `_shape_as_tensor` to a torch.Size)."""
     if torch.onnx.is_in_onnx_export():
-        return torch._shape_as_tensor(x)[2:].flip(0).to(dtype).view(1, 2, 1)
-    return torch.tensor([x.shape[3], x.shape[2]], dtype=dtype, device=x.device).view(1, 2, 1)
+        return torch._shape_as_tensor(img)[2:].to(dtype)
+    return torch.tensor(img.shape[2:], dtype=dtype, device=img.device)
+
+
+def _size(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(1,2,1) (w, h) of a (B,C,h,w) tensor, as `image_size`."""
+    return image_size(x, dtype).flip(0).view(1, 2, 1)
 
 
 def bilinear(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from d3lvo_deploy.bundled import BUNDLED, bundled_model_dir
-from d3lvo_deploy.manifest import load_manifest
+from d3lvo_deploy.manifest import graph_files, load_manifest
 
 runner = CliRunner()
 
@@ -13,7 +13,7 @@ def test_bundled_model_is_shipped_and_verified():
     m = load_manifest(bundled_model_dir())
     assert m["precision"] == "fp32" and m["model_config"]["mode"] == "rgb_completion"
     assert (BUNDLED / "MODEL_CARD.md").is_file()
-    files = [f for s in m["stages"].values() for f in (s["file"], s.get("onnxruntime", {}).get("file")) if f]
+    files = graph_files(m)
     assert "flowpose.onnxruntime.onnx" in files  # onnxruntime's own flow+pose graph ships too
     size = sum((BUNDLED / f).stat().st_size for f in files)
     assert size < 20e6  # "a few MB"
