@@ -95,7 +95,8 @@ def time_shape(s: ConvShape, threads: int, runs: int) -> tuple[float, float]:
         torch.onnx.export(conv, (x,), buf, input_names=["x"], output_names=["y"], opset_version=17, dynamo=False)
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")  # as the runtime runs
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1")  # as the runtime runs (SessionConfig)
+    so.add_session_config_entry("session.force_spinning_stop", "1")
     sess = ort.InferenceSession(buf.getvalue(), so, providers=["CPUExecutionProvider"])
     feeds = {"x": x.numpy()}
     return t_torch, _median_ms(lambda: sess.run(None, feeds), runs)
