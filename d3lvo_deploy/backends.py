@@ -57,7 +57,7 @@ class SessionConfig:
     optimization: str = "all"
     profile_dir: str | None = None
     # ORT's pool threads busy-wait between ops rather than sleep: a stage of thousands of small ops
-    # then pays no wake-up per op (13-16 % per frame, docs/performance.md). They stop when a run
+    # then pays no wake-up per op (2-20 % less per frame, docs/performance.md). They stop when a run
     # returns (force_spinning_stop): spinning on between runs would take the 2 cores from the
     # numpy projection between stages (~120 ms instead of ~14 ms)
     spinning: bool = True
