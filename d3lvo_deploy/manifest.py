@@ -29,6 +29,11 @@ def for_engine(st: dict, backend: str) -> dict:
     return {**st, "file": own["file"], "sha256": own["sha256"]} if isinstance(own, dict) else st
 
 
+def _names_a_file(entry) -> bool:
+    """A stage's (or an engine graph's) entry names its file and that file's sha256."""
+    return isinstance(entry, dict) and isinstance(entry.get("file"), str) and isinstance(entry.get("sha256"), str)
+
+
 def graph_files(m: dict) -> list[str]:
     """Every graph file a (loaded) manifest lists: each stage's own, then its engines' graphs."""
     return [e["file"] for st in m["stages"].values() for e in (st, *(st[k] for k in ENGINE_GRAPHS if k in st))]
@@ -69,14 +74,14 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
         if name not in stages:
             raise D3LVOInputError(path, f"lists no {name} stage")
     for name, st in stages.items():
-        if not isinstance(st, dict) or not isinstance(st.get("file"), str) or not isinstance(st.get("sha256"), str):
+        if not _names_a_file(st):
             raise D3LVOInputError(path, f"stage {name!r} has no file name or no sha256: re-export with `d3lvo export`")
         entries = [(name, st)]
         for engine in ENGINE_GRAPHS:
             own = st.get(engine)
             if own is None:
                 continue
-            if not isinstance(own, dict) or not isinstance(own.get("file"), str) or not isinstance(own.get("sha256"), str):
+            if not _names_a_file(own):
                 raise D3LVOInputError(path, f"stage {name!r}: its {engine} graph has no file name or no sha256")
             entries.append((f"{name} ({engine})", own))
         for label, entry in entries:

@@ -97,8 +97,12 @@ def _renamed_body(block: onnx.GraphProto, outer: list[str], prefix: str) -> onnx
     return helper.make_graph(nodes, prefix + "gauss_newton_block", inputs, outputs)
 
 
+def _is_placeholder(node: onnx.NodeProto) -> bool:
+    return node.domain == LOOP_DOMAIN and node.op_type == LOOP_OP
+
+
 def has_placeholders(model: onnx.ModelProto) -> bool:
-    return any(n.domain == LOOP_DOMAIN and n.op_type == LOOP_OP for n in model.graph.node)
+    return any(_is_placeholder(n) for n in model.graph.node)
 
 
 def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onnx.ModelProto:
@@ -108,7 +112,7 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
     blocks: dict[tuple, onnx.GraphProto] = {}
     loops = 0
     for node in model.graph.node:
-        if not (node.domain == LOOP_DOMAIN and node.op_type == LOOP_OP):
+        if not _is_placeholder(node):
             nodes.append(node)
             continue
         a = {x.name: helper.get_attribute_value(x) for x in node.attribute}
