@@ -59,6 +59,32 @@ def _stage_gflops(onnx: Path, manifest: dict) -> dict[str, float]:
     return out
 
 
+def _torch_streams(manifest: dict, seq, threads: int, eager: bool, compile: bool, frames: list) -> dict:
+    """torch eager and torch.compile on the exported model's config, warmed up (compiled), ready to
+    take turns with the engines; none when torch is not installed."""
+    if not (eager or compile):
+        return {}
+    try:
+        from models.bench_torch import TorchStream
+        from models.config import D3LVOConfig
+    except ImportError:
+        console.print("torch is not installed: no torch comparison", highlight=False)
+        return {}
+    from d3lvo_deploy.bench import warm_up
+
+    cfg = D3LVOConfig.from_dict(manifest["model_config"])
+    streams = {}
+    if eager:
+        streams["torch eager"] = TorchStream(cfg, seq, threads, frames=frames)
+    if compile:
+        with console.status("compiling with torch.compile (about a minute on 2 cores)"):
+            streams["torch.compile"] = TorchStream(cfg, seq, threads, compile=True, frames=frames)
+            warm_up([streams["torch.compile"]], streams["torch.compile"].warmup)
+    if eager:
+        warm_up([streams["torch eager"]], streams["torch eager"].warmup)
+    return streams
+
+
 @friendly_errors
 def bench_command(
     onnx: Path | None = typer.Option(None, "--onnx", help="Exported model folder (default: the bundled model)."),
@@ -86,7 +112,7 @@ def bench_command(
     Example: d3lvo bench --runs 30 --no-torch   (the bundled model; --height 352 --width 1216: the paper's size)
     """
     from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
-    from d3lvo_deploy.bench import TURN_FRAMES, bench_engines, peak_rss_mb
+    from d3lvo_deploy.bench import TURN_FRAMES, EngineStream, bench_frames, peak_rss_mb, take_turns, warm_up
     from d3lvo_deploy.bundled import find_real_frames
     from d3lvo_deploy.cpu import cpu_info, gemm_peak_gflops
     from d3lvo_deploy.manifest import load_manifest
@@ -168,30 +194,25 @@ def bench_command(
         top_ops = None
         scs = [SessionConfig(threads=threads, backend=b, ov_precision=ov_precision if b == "openvino" else "f32",
                              profile_dir=str(profile) if profile and b == "onnxruntime" else None) for b in engines]
-        turns = f", taking turns {TURN_FRAMES} frames at a time" if len(engines) > 1 else ""
-        with console.status(f"timing {', '.join(engines)} ({runs} frames each{turns}, then {runs} pipelined)"):
-            for b, st in zip(engines, bench_engines(onnx, seq, scs, runs)):
-                timed[b], pipelined[b] = st.summary(), st.pipelined_fps
+        frames = bench_frames(seq)
+        with console.status(f"loading {', '.join(engines)}"):
+            streams = {b: EngineStream(onnx, seq, sc, frames) for b, sc in zip(engines, scs)}
+            warm_up(list(streams.values()), 3)
+        rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
+        torch_streams = _torch_streams(manifest, seq, threads, torch_compare, torch_compile, frames)
+        streams.update(torch_streams)
+        turns = f", taking turns {TURN_FRAMES} frames at a time" if len(streams) > 1 else ""
+        with console.status(f"timing {', '.join(streams)} ({runs} frames each{turns}, then {runs} pipelined)"):
+            times = dict(zip(streams, take_turns(list(streams.values()), runs)))
+            for b in engines:
+                streams[b].finish(times[b], runs)
+                timed[b], pipelined[b] = times[b].summary(), times[b].pipelined_fps
         if profile is not None:
             from d3lvo_deploy.bench import profile_summary
 
             top_ops = profile_summary(sorted(str(p) for p in profile.glob("*.json")))
-        rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
-        torch_t = compiled_t = None
-        if torch_compare or torch_compile:
-            try:
-                from models.bench_torch import bench_torch
-                from models.config import D3LVOConfig
-            except ImportError:
-                console.print("torch is not installed: no torch comparison", highlight=False)
-            else:
-                cfg = D3LVOConfig.from_dict(manifest["model_config"])
-                if torch_compare:
-                    with console.status(f"timing torch eager ({runs} frames)"):
-                        torch_t = bench_torch(cfg, seq, threads, runs).summary()
-                if torch_compile:
-                    with console.status(f"compiling with torch.compile, then timing it ({runs} frames)"):
-                        compiled_t = bench_torch(cfg, seq, threads, runs, compile=True).summary()
+        torch_t = times["torch eager"].summary() if "torch eager" in times else None
+        compiled_t = times["torch.compile"].summary() if "torch.compile" in times else None
     net = ("completion", "encoder", "flowpose")
     network_ms = lambda t: sum(t[k]["median"] for k in net if k in t)  # noqa: E731
     best = min(timed, key=lambda b: timed[b]["total"]["median"])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import resource
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -14,7 +15,7 @@ from .onnx_model import SessionConfig, StageModel
 from .sequence import KittiSequence
 
 BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
-TURN_FRAMES = 5  # frames an engine runs before the next engine's turn (`bench_engines`)
+TURN_FRAMES = 5  # frames a stream runs before the next one's turn (`take_turns`)
 
 
 @dataclass
@@ -47,30 +48,61 @@ def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warm
     return bench_engines(model_dir, seq, [sc], runs, warmup)[0]
 
 
+def bench_frames(seq: KittiSequence) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The frames every timed stream cycles through (image, scan), read once."""
+    return [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
+
+
+class EngineStream:
+    """One engine's stream over the frames: each call steps the next frame and returns its stage times."""
+
+    def __init__(self, model_dir, seq: KittiSequence, sc: SessionConfig, frames: list):
+        self.sc, self.frames, self.k = sc, frames, 0
+        self.model = StageModel(model_dir, sc)
+        self.odo = Odometry(model_dir, seq.calib, sc, model=self.model)
+
+    def __call__(self) -> dict[str, float]:
+        self.odo.step(*self.frames[self.k % len(self.frames)])
+        self.k += 1
+        return dict(self.odo.last_timing.ms)
+
+    def finish(self, times: StageTimes, runs: int) -> None:
+        """Ends profiling, or else times the same stream pipelined (`pipelined_fps`)."""
+        if self.sc.profile_dir:
+            self.model.end_profiling()
+        else:
+            times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs)
+
+
+def warm_up(streams: list[Callable[[], dict]], frames: int) -> None:
+    """Steps each stream `frames` times untimed: first-call allocations, caches, compiles."""
+    for stream in streams:
+        for _ in range(frames):
+            stream()
+
+
+def take_turns(streams: list[Callable[[], dict]], runs: int, block: int = TURN_FRAMES) -> list[StageTimes]:
+    """`runs` timed frames of each stream, taking turns `block` frames at a time: a VM's speed drifts
+    by tens of percent within minutes, and streams timed one after the other would each be timed in
+    a different phase of it; taking turns, their ratio is measured under the same drift. Each
+    stream steps its own run of the frames, so every one sees consecutive pairs."""
+    times = [StageTimes() for _ in streams]
+    while min(len(t.samples["total"]) for t in times) < runs:
+        for stream, t in zip(streams, times):
+            for _ in range(min(block, runs - len(t.samples["total"]))):
+                t.add(stream())
+    return times
+
+
 def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs: int, warmup: int = 3,
                   block: int = TURN_FRAMES) -> list[StageTimes]:
-    """`bench_onnx` for several engines at once, taking turns `block` frames at a time: a VM's speed
-    drifts by tens of percent within minutes, and engines timed one after the other would each be
-    timed in a different phase of it; taking turns, their ratio is measured under the same drift.
-    Each engine streams its own run of the frames, so every one sees consecutive pairs."""
-    models = [StageModel(model_dir, sc) for sc in scs]
-    odos = [Odometry(model_dir, seq.calib, sc, model=m) for sc, m in zip(scs, models)]
-    frames = [(seq.image(i), seq.scan(i)) for i in range(min(len(seq), 10))]
-    times = [StageTimes() for _ in scs]
-    done = [0] * len(scs)  # frames stepped per engine, warm-up included
-    while min(done) < warmup + runs:
-        for e, odo in enumerate(odos):
-            for _ in range(min(block, warmup + runs - done[e])):
-                k = done[e]
-                odo.step(*frames[k % len(frames)])
-                if k >= warmup:
-                    times[e].add(dict(odo.last_timing.ms))
-                done[e] += 1
-    for sc, model, odo, t in zip(scs, models, odos, times):
-        if sc.profile_dir:
-            model.end_profiling()
-        else:
-            t.pipelined_fps = pipelined_fps(odo, frames, runs)
+    """`bench_onnx` for several engines at once, taking turns (`take_turns`) after each is warmed up."""
+    frames = bench_frames(seq)
+    streams = [EngineStream(model_dir, seq, sc, frames) for sc in scs]
+    warm_up(streams, warmup)
+    times = take_turns(streams, runs, block)
+    for stream, t in zip(streams, times):
+        stream.finish(t, runs)
     return times
 
 

@@ -149,8 +149,9 @@ def test_cli_bench_precision_errors(small_model):
 
 
 def test_engines_take_turns_in_blocks_each_on_its_own_consecutive_frames(small_model, small_synth, monkeypatch):
-    """Two engines timed together alternate 2 frames at a time (the last turn shorter), each
-    stepping the frames 0, 1, 2, ... of its own stream, and each gets exactly `runs` samples."""
+    """Two engines timed together are warmed up one after the other, then alternate 2 frames at a
+    time, each stepping the frames 0, 1, 2, ... of its own stream, and each gets exactly `runs`
+    samples."""
     from d3lvo_deploy.bench import bench_engines
     from d3lvo_deploy.odometry import Odometry
 
@@ -168,8 +169,8 @@ def test_engines_take_turns_in_blocks_each_on_its_own_consecutive_frames(small_m
     times = bench_engines(onnx_dir, seq, scs, runs=4, warmup=1, block=2)
     assert [len(t.samples["total"]) for t in times] == [4, 4]
     stepped = [o for o, _ in order[:10]]  # the timed loop, before the pipelined one
-    a, b = stepped[0], stepped[2]
-    assert a != b and stepped == [a, a, b, b, a, a, b, b, a, b]
+    a, b = stepped[0], stepped[1]
+    assert a != b and stepped == [a, b, a, a, b, b, a, a, b, b]
     n = min(len(seq), 10)
     sums = [int(np.asarray(seq.image(i)).sum()) for i in range(n)]
     for engine in (a, b):
@@ -213,3 +214,34 @@ def test_torch_side_times_the_point_solver_model(small_synth):
     t = bench_torch(cfg, KittiSequence.open(small_synth), threads=1, runs=2, warmup=1).summary()
     assert set(t) >= {"completion", "encoder", "flowpose", "total"}
     assert t["flowpose"]["min"] > 0 and t["total"]["median"] >= t["flowpose"]["median"]
+
+
+def test_cli_bench_times_torch_in_turns_with_the_engines(small_model, small_synth, monkeypatch):
+    """torch is timed in the same turns as the engines (5 frames each), not after them, so that a
+    VM's drift reaches both sides of the engine/torch ratio alike: after the warm-ups (3 engine
+    frames, 2 torch frames), 7 timed frames each run as engine x5, torch x5, engine x2, torch x2."""
+    pytest.importorskip("torch")
+    from d3lvo_deploy.odometry import Odometry
+    from models.bench_torch import TorchStream
+
+    order = []
+    step, call = Odometry.step, TorchStream.__call__
+
+    def engine_step(self, image, points):
+        order.append("engine")
+        return step(self, image, points)
+
+    def torch_step(self):
+        order.append("torch")
+        return call(self)
+
+    monkeypatch.setattr(Odometry, "step", engine_step)
+    monkeypatch.setattr(TorchStream, "__call__", torch_step)
+    _, onnx_dir = small_model
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "7",
+                            "--threads", "1", "--json", "--backend", "onnxruntime"])
+    assert r.exit_code == 0, r.output
+    timed = order[:3 + 2 + 14]  # the pipelined timing steps the engine afterwards
+    assert timed == ["engine"] * 3 + ["torch"] * 2 + ["engine"] * 5 + ["torch"] * 5 + ["engine"] * 2 + ["torch"] * 2
+    d = json.loads(r.stdout)
+    assert d["ort_over_torch"] > 0 and set(d["torch_stages_ms"]) >= {"completion", "encoder", "flowpose"}
