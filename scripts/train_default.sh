@@ -139,6 +139,13 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
   --size "$SIZE" --motion-from "$GT/09.txt" --motion-start 800
 [ -f "$OUT/data/static_220/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/static_220" --frames 200 --seed 220 \
   --size "$SIZE" --motion-from "$GT/10.txt" --motion-start 600
+# more static drives, rendered after the solver's settings were fixed (seed, KITTI sequence, start)
+for spec in "221 09 400" "222 10 0" "223 09 1300" "224 10 900" "225 09 100" "226 10 200" "227 09 500" \
+            "228 10 400" "229 09 1000" "230 10 700" "231 09 1200"; do
+  read -r seed sq start <<< "$spec"
+  [ -f "$OUT/data/static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/static_$seed" --frames 200 \
+    --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+done
 drive traffic_309 --frames 200 --seed 309 --motion-from "$GT/09.txt" --motion-start 200 --traffic 3
 drive traffic_310 --frames 200 --seed 310 --motion-from "$GT/10.txt" --motion-start 300 --traffic 5
 drive traffic_311 --frames 200 --seed 311 --motion-from "$GT/09.txt" --motion-start 900 --traffic 8
@@ -150,6 +157,10 @@ for s in heldout_09 heldout_10 static_219 static_220 traffic_309 traffic_310 tra
   "$D3LVO" run --seq-dir "$OUT/data/$s" --out "$OUT/eval/default_$s.txt" --overwrite
   "$D3LVO" run --seq-dir "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/cells_onnx" --out "$OUT/eval/cells_$s.txt" --overwrite
+done
+for s in $(seq 221 231); do
+  "$D3LVO" run --seq-dir "$OUT/data/static_$s" --out "$OUT/eval/default_static_$s.txt" --overwrite
+  "$D3LVO" run --seq-dir "$OUT/data/static_$s" --method direct --out "$OUT/eval/direct_static_$s.txt" --overwrite
 done
 for s in heldout_09 heldout_10; do
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/mlp_onnx" --out "$OUT/eval/mlp_$s.txt" --overwrite
