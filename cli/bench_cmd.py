@@ -77,11 +77,10 @@ def _torch_streams(manifest: dict, seq, threads: int, eager: bool, compile: bool
     if eager:
         streams["torch eager"] = TorchStream(cfg, seq, threads, frames=frames)
     if compile:
-        with console.status("compiling with torch.compile (about a minute on 2 cores)"):
-            streams["torch.compile"] = TorchStream(cfg, seq, threads, compile=True, frames=frames)
-            warm_up([streams["torch.compile"]], streams["torch.compile"].warmup)
-    if eager:
-        warm_up([streams["torch eager"]], streams["torch eager"].warmup)
+        streams["torch.compile"] = TorchStream(cfg, seq, threads, compile=True, frames=frames)
+    with console.status("warming up torch" + (" (torch.compile compiles: about a minute on 2 cores)" if compile else "")):
+        for stream in streams.values():
+            warm_up([stream], stream.warmup)
     return streams
 
 
@@ -112,7 +111,8 @@ def bench_command(
     Example: d3lvo bench --runs 30 --no-torch   (the bundled model; --height 352 --width 1216: the paper's size)
     """
     from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
-    from d3lvo_deploy.bench import TURN_FRAMES, EngineStream, bench_frames, peak_rss_mb, take_turns, warm_up
+    from d3lvo_deploy.bench import (ENGINE_WARMUP, TURN_FRAMES, EngineStream, bench_frames, peak_rss_mb, take_turns,
+                                    warm_up)
     from d3lvo_deploy.bundled import find_real_frames
     from d3lvo_deploy.cpu import cpu_info, gemm_peak_gflops
     from d3lvo_deploy.manifest import load_manifest
@@ -197,7 +197,7 @@ def bench_command(
         frames = bench_frames(seq)
         with console.status(f"loading {', '.join(engines)}"):
             streams = {b: EngineStream(onnx, seq, sc, frames) for b, sc in zip(engines, scs)}
-            warm_up(list(streams.values()), 3)
+            warm_up(list(streams.values()), ENGINE_WARMUP)
         rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
         torch_streams = _torch_streams(manifest, seq, threads, torch_compare, torch_compile, frames)
         streams.update(torch_streams)

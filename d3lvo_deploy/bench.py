@@ -16,6 +16,7 @@ from .sequence import KittiSequence
 
 BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
 TURN_FRAMES = 5  # frames a stream runs before the next one's turn (`take_turns`)
+ENGINE_WARMUP = 3  # untimed frames per engine first (`warm_up`): first-call allocations, caches
 
 
 @dataclass
@@ -43,7 +44,8 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
 
 
-def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int, warmup: int = 3) -> StageTimes:
+def bench_onnx(model_dir, seq: KittiSequence, sc: SessionConfig, runs: int,
+               warmup: int = ENGINE_WARMUP) -> StageTimes:
     """Steady-state per-frame latency: the stream runs over the sequence's frames (cycled), as on a car."""
     return bench_engines(model_dir, seq, [sc], runs, warmup)[0]
 
@@ -94,7 +96,7 @@ def take_turns(streams: list[Callable[[], dict]], runs: int, block: int = TURN_F
     return times
 
 
-def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs: int, warmup: int = 3,
+def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs: int, warmup: int = ENGINE_WARMUP,
                   block: int = TURN_FRAMES) -> list[StageTimes]:
     """`bench_onnx` for several engines at once, taking turns (`take_turns`) after each is warmed up."""
     frames = bench_frames(seq)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from d3lvo_deploy.bench import StageTimes, bench_frames, take_turns, timed, warm_up
+from d3lvo_deploy.bench import bench_frames, timed
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
@@ -67,10 +67,3 @@ class TorchStream:
         self.prev, self.k = cur, k + 1
         return ms
 
-
-def bench_torch(cfg: D3LVOConfig, seq: KittiSequence, threads: int, runs: int, warmup: int | None = None,
-                compile: bool = False) -> StageTimes:
-    """`TorchStream` alone: `runs` timed frames after its warm-up."""
-    stream = TorchStream(cfg, seq, threads, compile)
-    warm_up([stream], stream.warmup if warmup is None else max(warmup, 1))
-    return take_turns([stream], runs)[0]

@@ -207,11 +207,14 @@ def test_torch_side_times_the_point_solver_model(small_synth):
     """The bundled model's kind (`pose_head="points"`): torch's flow+pose takes the solver's points
     and image pyramids and frame t's depths, as the ONNX graph does, instead of failing on them."""
     pytest.importorskip("torch")
-    from models.bench_torch import bench_torch
+    from d3lvo_deploy.bench import take_turns, warm_up
+    from models.bench_torch import TorchStream
     from models.config import D3LVOConfig
 
     cfg = D3LVOConfig.small(pose_head="points", pt_iters=(2, 2, 2))
-    t = bench_torch(cfg, KittiSequence.open(small_synth), threads=1, runs=2, warmup=1).summary()
+    stream = TorchStream(cfg, KittiSequence.open(small_synth), threads=1)
+    warm_up([stream], 1)
+    t = take_turns([stream], 2)[0].summary()
     assert set(t) >= {"completion", "encoder", "flowpose", "total"}
     assert t["flowpose"]["min"] > 0 and t["total"]["median"] >= t["flowpose"]["median"]
 
