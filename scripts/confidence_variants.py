@@ -1,0 +1,148 @@
+"""How the bundled model's confidence becomes a point weight: variants measured in torch, untrained.
+
+On static drives the bundled network's per-pair rotation error is a little higher than its
+classical mode's (docs/evaluation.md). This script asks whether a different use of the same
+confidence closes that gap without giving up the gain with traffic. Each variant runs the bundled
+weights over whole drives (`models.predict.predict_sequence`) and prints `d3lvo eval`'s figures:
+
+- `conf`: the shipped weight, the point's confidence;
+- `ones`: every weight 1, the classical mode;
+- `lin:A:B`: (conf - A) / (B - A) clipped to [0, 1] (`pt_conf_full=C` is `lin:0:C`);
+- `strong:T`: only confidences below T kept, the rest 1; `mild:T`: confidences below T set to 1;
+- `evidence-at-classical`: the confidence net reads its evidence against the classical mode's
+  solved motion instead of the constant-velocity start (one more solve per pair);
+- `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
+  its residual (a Huber-shaped likelihood against a uniform one of density C per grey level).
+
+    .venv/bin/python scripts/confidence_variants.py VARIANT DRIVE [DRIVE ...]   # ~40 s per 200 frames
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from d3lvo_deploy.bundled import bundled_model_dir
+from d3lvo_deploy.evaluation import evaluate
+from d3lvo_deploy.poses import Trajectory, read_poses
+from models import point_solver, pose_points
+from models.checkpoint import build_model, load_checkpoint
+from models.point_solver import HUBER_K, image_pyramids, pyramid_input_names, solve
+from models.predict import predict_sequence
+
+
+def weight_map(variant: str):
+    """conf (B,N) -> weight (B,N) for the remapping variants."""
+    name, *args = variant.split(":")
+    try:
+        a = [float(x) for x in args]
+    except ValueError:
+        sys.exit(f"variant {variant!r}: the numbers after its name do not read as numbers")
+    if name == "ones":
+        return torch.ones_like
+    if name == "lin":
+        return lambda c: ((c - a[0]) / (a[1] - a[0])).clamp(0.0, 1.0)
+    if name == "strong":
+        return lambda c: torch.where(c < a[0], c, torch.ones_like(c))
+    if name == "mild":
+        return lambda c: torch.where(c < a[0], torch.ones_like(c), c)
+    return None
+
+
+def posterior_steps(density: float):
+    """`point_solver.gn_steps` with the weight p / (p + (1 - p) density sigma sqrt(2 pi) exp(rho(r / sigma)))."""
+    original = point_solver.huber_weights_at
+
+    def steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s):
+        def huber_and_posterior(r, k):
+            sigma = k / HUBER_K
+            z = (r / sigma).abs()
+            rho = torch.where(z <= HUBER_K, 0.5 * z**2, HUBER_K * z - 0.5 * HUBER_K**2).clamp(max=50.0)
+            post = weight / (weight + (1 - weight) * density * sigma * math.sqrt(2 * math.pi) * torch.exp(rho))
+            return original(r, k) * torch.where(weight > 0, post / weight.clamp(min=1e-12), torch.zeros_like(post))
+
+        point_solver.huber_weights_at = huber_and_posterior
+        try:
+            return gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s)
+        finally:
+            point_solver.huber_weights_at = original
+
+    gn_steps = point_solver.gn_steps
+    return steps
+
+
+def apply_variant(variant: str) -> None:
+    remap = weight_map(variant)
+    if remap is not None:
+        confidence = pose_points.PointPose.point_confidence
+        pose_points.PointPose.point_confidence = lambda self, c, p, K: remap(confidence(self, c, p, K))
+    elif variant.startswith("posterior:"):
+        point_solver.gn_steps = posterior_steps(float(variant.split(":")[1]))
+    elif variant == "evidence-at-classical":
+        forward, logits = pose_points.PointPose.forward, pose_points.PointPose.moving_logits
+
+        def classical_start(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver):
+            if solver is not None:
+                names = pyramid_input_names(len(self.settings.iterations))
+                pyr = ([solver[n] for n in names[0]], [solver[n] for n in names[1]]) if names[0][0] in solver else \
+                    image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
+                solved = solve(*pyr, solver["points1"], solver["point_mask1"], solver["image_intrinsics"], init,
+                               self.settings)[-1]
+                self.moving_logits = lambda *a: logits(self, *a[:-1], solved)
+            try:
+                return forward(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver)
+            finally:
+                self.__dict__.pop("moving_logits", None)
+
+        pose_points.PointPose.forward = classical_start
+    elif variant != "conf":
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, posterior:C")
+
+
+def record_weights(into: list) -> None:
+    """Keep each pair's (depth, weight) of the listed points, to say where the weights fall."""
+    forward = pose_points.PointPose.forward
+
+    def recording(self, *args):
+        out = forward(self, *args)
+        if "point_weights" in out:
+            on = args[-1]["point_mask1"][0] > 0
+            into.append(np.c_[args[-1]["points1"][0][on][:, 2].numpy(), out["point_weights"][0][on].numpy()])
+        return out
+
+    pose_points.PointPose.forward = recording
+
+
+DEPTHS = (0.0, 5.0, 10.0, 20.0, 1e9)
+
+
+def main(variant: str, drives: list[str]) -> None:
+    torch.set_num_threads(1)
+    apply_variant(variant)
+    pairs: list = []
+    record_weights(pairs)
+    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
+    for drive in drives:
+        if not (Path(drive) / "poses.txt").is_file():
+            sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
+        est = predict_sequence(model, drive)
+        r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(est))
+        t_rel = "n/a (under 100 m)" if r.t_rel is None else f"{r.t_rel:.4f} %"
+        print(f"{variant} {Path(drive).name}: t_rel {t_rel} rpe_t {r.rpe_t * 1e3:.3f} mm "
+              f"rpe_r {r.rpe_r * 1e3:.2f} mdeg ate {r.ate:.3f} m", flush=True)
+        z, w = np.concatenate(pairs).T
+        bins = [f"{lo:g}-{hi:g} m: {w[(z >= lo) & (z < hi)].mean():.3f}" if hi < 1e9 else f"from {lo:g} m: "
+                f"{w[z >= lo].mean():.3f}" for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:])]
+        print(f"  mean weight by depth (without the solver's Huber weights): {', '.join(bins)}; "
+              f"below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
+        pairs.clear()
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        sys.exit(__doc__)
+    main(sys.argv[1], sys.argv[2:])
