@@ -1,4 +1,4 @@
-"""How the bundled model's confidence becomes a point weight: variants measured in torch, untrained.
+"""How the bundled model's confidence becomes a point weight: variants measured in torch, without retraining.
 
 On static drives the bundled network's per-pair rotation error is a little higher than its
 classical mode's (docs/evaluation.md). This script asks whether a different use of the same
@@ -9,18 +9,22 @@ weights over whole drives (`models.predict.predict_sequence`) and prints `d3lvo 
 - `ones`: every weight 1, the classical mode;
 - `lin:A:B`: (conf - A) / (B - A) clipped to [0, 1] (`pt_conf_full=C` is `lin:0:C`);
 - `strong:T`: only confidences below T kept, the rest 1; `mild:T`: confidences below T set to 1;
-- `evidence-at-classical`: the confidence net reads its evidence against the classical mode's
-  solved motion instead of the constant-velocity start (one more solve per pair);
+- `evidence-at-classical`: the confidence net reads its evidence against the motion a classical
+  solve (every weight 1) finds from the same constant-velocity start, instead of that start (one
+  more solve per pair);
 - `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
-  its residual (a Huber-shaped likelihood against a uniform one of density C per grey level).
+  its residual (a Huber-shaped likelihood against a uniform one of density C on the [0, 1] grey
+  scale).
 
-    .venv/bin/python scripts/confidence_variants.py VARIANT DRIVE [DRIVE ...]   # ~40 s per 200 frames
+    .venv/bin/python scripts/confidence_variants.py VARIANT DRIVE [DRIVE ...]
+    # ~40 s per 200 frames on an AMD EPYC (AVX-512), one thread
 """
 
 from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -35,13 +39,32 @@ from models.point_solver import HUBER_K, image_pyramids, pyramid_input_names, so
 from models.predict import predict_sequence
 
 
-def weight_map(variant: str):
-    """conf (B,N) -> weight (B,N) for the remapping variants."""
+Remap = Callable[[torch.Tensor], torch.Tensor]
+REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
+OTHERS = {"conf": 0, "evidence-at-classical": 0, "posterior": 1}
+
+
+def parse(variant: str) -> tuple[str, list[float]]:
+    """Name and numbers of a variant, or exit with what is wrong with it."""
     name, *args = variant.split(":")
+    count = {**REMAPS, **OTHERS}.get(name)
+    if count is None:
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, posterior:C")
     try:
-        a = [float(x) for x in args]
+        numbers = [float(x) for x in args]
     except ValueError:
-        sys.exit(f"variant {variant!r}: the numbers after its name do not read as numbers")
+        numbers = []
+    if len(numbers) != count or len(args) != count:
+        sys.exit(f"variant {variant!r}: {name} takes {count} number(s) after its name, separated by ':'")
+    if name == "lin" and not numbers[0] < numbers[1]:
+        sys.exit(f"variant {variant!r}: lin:A:B needs A < B (the ramp from weight 0 at A to 1 at B)")
+    if name == "posterior" and not numbers[0] > 0:
+        sys.exit(f"variant {variant!r}: the outlier density C must be above 0")
+    return name, numbers
+
+
+def weight_map(name: str, a: list[float]) -> Remap | None:
+    """conf (B,N) -> weight (B,N) for the remapping variants; None for the others."""
     if name == "ones":
         return torch.ones_like
     if name == "lin":
@@ -53,36 +76,37 @@ def weight_map(variant: str):
     return None
 
 
-def posterior_steps(density: float):
-    """`point_solver.gn_steps` with the weight p / (p + (1 - p) density sigma sqrt(2 pi) exp(rho(r / sigma)))."""
-    original = point_solver.huber_weights_at
+def posterior_steps(density: float) -> Callable:
+    """`point_solver.gn_steps` with the weight p / (p + (1 - p) density sigma sqrt(2 pi) exp(rho(r / sigma)))
+    in place of p: a point the residual says is an outlier loses its prior weight."""
+    gn_steps, huber = point_solver.gn_steps, point_solver.huber_weights_at
 
     def steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s):
-        def huber_and_posterior(r, k):
+        def huber_and_posterior(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
             sigma = k / HUBER_K
             z = (r / sigma).abs()
             rho = torch.where(z <= HUBER_K, 0.5 * z**2, HUBER_K * z - 0.5 * HUBER_K**2).clamp(max=50.0)
-            post = weight / (weight + (1 - weight) * density * sigma * math.sqrt(2 * math.pi) * torch.exp(rho))
-            return original(r, k) * torch.where(weight > 0, post / weight.clamp(min=1e-12), torch.zeros_like(post))
+            # gn_steps multiplies by `weight` again: posterior / weight
+            return huber(r, k) / (weight + (1 - weight) * density * sigma * math.sqrt(2 * math.pi) * torch.exp(rho))
 
         point_solver.huber_weights_at = huber_and_posterior
         try:
             return gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s)
         finally:
-            point_solver.huber_weights_at = original
+            point_solver.huber_weights_at = huber
 
-    gn_steps = point_solver.gn_steps
     return steps
 
 
-def apply_variant(variant: str) -> None:
-    remap = weight_map(variant)
+def apply_variant(name: str, numbers: list[float]) -> None:
+    """Patch the model code for one variant (this process only)."""
+    remap = weight_map(name, numbers)
     if remap is not None:
         confidence = pose_points.PointPose.point_confidence
         pose_points.PointPose.point_confidence = lambda self, c, p, K: remap(confidence(self, c, p, K))
-    elif variant.startswith("posterior:"):
-        point_solver.gn_steps = posterior_steps(float(variant.split(":")[1]))
-    elif variant == "evidence-at-classical":
+    elif name == "posterior":
+        point_solver.gn_steps = posterior_steps(numbers[0])
+    elif name == "evidence-at-classical":
         forward, logits = pose_points.PointPose.forward, pose_points.PointPose.moving_logits
 
         def classical_start(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver):
@@ -99,11 +123,9 @@ def apply_variant(variant: str) -> None:
                 self.__dict__.pop("moving_logits", None)
 
         pose_points.PointPose.forward = classical_start
-    elif variant != "conf":
-        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, posterior:C")
 
 
-def record_weights(into: list) -> None:
+def record_weights(into: list[np.ndarray]) -> None:
     """Keep each pair's (depth, weight) of the listed points, to say where the weights fall."""
     forward = pose_points.PointPose.forward
 
@@ -117,28 +139,31 @@ def record_weights(into: list) -> None:
     pose_points.PointPose.forward = recording
 
 
-DEPTHS = (0.0, 5.0, 10.0, 20.0, 1e9)
+DEPTHS = (0.0, 5.0, 10.0, 20.0, math.inf)
 
 
 def main(variant: str, drives: list[str]) -> None:
-    torch.set_num_threads(1)
-    apply_variant(variant)
-    pairs: list = []
-    record_weights(pairs)
-    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
+    """Run the variant over each drive and print its scores and where its weights fall."""
+    name, numbers = parse(variant)
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
             sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
+    torch.set_num_threads(1)
+    apply_variant(name, numbers)
+    pairs: list[np.ndarray] = []
+    record_weights(pairs)
+    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
+    for drive in drives:
         est = predict_sequence(model, drive)
         r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(est))
         t_rel = "n/a (under 100 m)" if r.t_rel is None else f"{r.t_rel:.4f} %"
         print(f"{variant} {Path(drive).name}: t_rel {t_rel} rpe_t {r.rpe_t * 1e3:.3f} mm "
               f"rpe_r {r.rpe_r * 1e3:.2f} mdeg ate {r.ate:.3f} m", flush=True)
         z, w = np.concatenate(pairs).T
-        bins = [f"{lo:g}-{hi:g} m: {w[(z >= lo) & (z < hi)].mean():.3f}" if hi < 1e9 else f"from {lo:g} m: "
-                f"{w[z >= lo].mean():.3f}" for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:])]
-        print(f"  mean weight by depth (without the solver's Huber weights): {', '.join(bins)}; "
-              f"below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
+        bins = [f"{f'{lo:g}-{hi:g} m' if hi < math.inf else f'from {lo:g} m'}: {w[(z >= lo) & (z < hi)].mean():.3f}"
+                for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:]) if ((z >= lo) & (z < hi)).any()]
+        print(f"  mean point confidence after the variant's remap (before any Huber or posterior weight) by "
+              f"depth: {', '.join(bins)}; below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
         pairs.clear()
 
 
