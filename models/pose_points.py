@@ -101,6 +101,14 @@ class PointPose(nn.Module):
         return F.grid_sample(confidence, grid.unsqueeze(1), mode="bilinear", padding_mode="border",
                              align_corners=True)[:, 0, 0]
 
+    def pyramids(self, solver: dict) -> tuple[list, list]:
+        """Both frames' image pyramids for `solve`: the exported graph's inputs where `solver` has
+        them, else made from its grey images (training)."""
+        grey1, stack2 = pyramid_input_names(len(self.settings.iterations))
+        if grey1[0] in solver:
+            return [solver[n] for n in grey1], [solver[n] for n in stack2]
+        return image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
+
     def forward(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                 invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, init: torch.Tensor,
                 solver: dict | None) -> dict:
@@ -119,12 +127,7 @@ class PointPose(nn.Module):
         if self.cfg.pt_conf_full < 1:
             conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
-        grey1, stack2 = pyramid_input_names(len(self.settings.iterations))
-        if grey1[0] in solver:
-            pyramids = [solver[n] for n in grey1], [solver[n] for n in stack2]
-        else:
-            pyramids = image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
-        levels = solve(*pyramids, solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
+        levels = solve(*self.pyramids(solver), solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
                        mask=solver["point_mask1"])
         out["point_weights"] = weight
         out["level_matrices"] = levels

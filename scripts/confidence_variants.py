@@ -35,7 +35,7 @@ from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.poses import Trajectory, read_poses
 from models import point_solver, pose_points
 from models.checkpoint import build_model, load_checkpoint
-from models.point_solver import HUBER_K, image_pyramids, pyramid_input_names, solve
+from models.point_solver import HUBER_K, solve
 from models.predict import predict_sequence
 
 
@@ -111,10 +111,7 @@ def apply_variant(name: str, numbers: list[float]) -> None:
 
         def classical_start(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver):
             if solver is not None:
-                names = pyramid_input_names(len(self.settings.iterations))
-                pyr = ([solver[n] for n in names[0]], [solver[n] for n in names[1]]) if names[0][0] in solver else \
-                    image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
-                solved = solve(*pyr, solver["points1"], solver["point_mask1"], solver["image_intrinsics"], init,
+                solved = solve(*self.pyramids(solver), solver["points1"], solver["point_mask1"], solver["image_intrinsics"], init,
                                self.settings)[-1]
                 self.moving_logits = lambda *a: logits(self, *a[:-1], solved)
             try:
@@ -160,8 +157,11 @@ def main(variant: str, drives: list[str]) -> None:
         print(f"{variant} {Path(drive).name}: t_rel {t_rel} rpe_t {r.rpe_t * 1e3:.3f} mm "
               f"rpe_r {r.rpe_r * 1e3:.2f} mdeg ate {r.ate:.3f} m", flush=True)
         z, w = np.concatenate(pairs).T
-        bins = [f"{f'{lo:g}-{hi:g} m' if hi < math.inf else f'from {lo:g} m'}: {w[(z >= lo) & (z < hi)].mean():.3f}"
-                for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:]) if ((z >= lo) & (z < hi)).any()]
+        bins = []
+        for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:]):
+            within = (z >= lo) & (z < hi)
+            if within.any():
+                bins.append(f"{f'{lo:g}-{hi:g} m' if hi < math.inf else f'from {lo:g} m'}: {w[within].mean():.3f}")
         print(f"  mean point confidence after the variant's remap (before any Huber or posterior weight) by "
               f"depth: {', '.join(bins)}; below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
         pairs.clear()
