@@ -3,7 +3,8 @@
 On static drives the bundled network's per-pair rotation error is a little higher than its
 classical mode's (docs/evaluation.md). This script asks whether a different use of the same
 confidence closes that gap without giving up the gain with traffic. Each variant runs the bundled
-weights over whole drives (`models.predict.predict_sequence`) and prints `d3lvo eval`'s figures:
+weights (or `--ckpt`'s) over whole drives (`models.predict.predict_sequence`) and prints `d3lvo
+eval`'s figures:
 
 - `conf`: the shipped weight, the point's confidence;
 - `ones`: every weight 1, the classical mode;
@@ -12,11 +13,15 @@ weights over whole drives (`models.predict.predict_sequence`) and prints `d3lvo 
 - `evidence-at-classical`: the confidence net reads its evidence against the motion a classical
   solve (every weight 1) finds from the same constant-velocity start, instead of that start (one
   more solve per pair);
+- `evidence-at-network`: two passes; the second reads the evidence against the motion the first
+  (the shipped weights) found, and solves again from there;
+- `open:K`: the map of p(moving) = 1 - confidence opened (eroded, then dilated) with a KxK window
+  before the points read it: thin detections along edges go, blobs as wide as K cells stay;
 - `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
   its residual (a Huber-shaped likelihood against a uniform one of density C on the [0, 1] grey
   scale).
 
-    .venv/bin/python scripts/confidence_variants.py VARIANT DRIVE [DRIVE ...]
+    .venv/bin/python scripts/confidence_variants.py [--ckpt CHECKPOINT] VARIANT DRIVE [DRIVE ...]
     # ~40 s per 200 frames on an AMD EPYC (AVX-512), one thread
 """
 
@@ -41,7 +46,7 @@ from models.predict import predict_sequence
 
 Remap = Callable[[torch.Tensor], torch.Tensor]
 REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
-OTHERS = {"conf": 0, "evidence-at-classical": 0, "posterior": 1}
+OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1}
 
 
 def parse(variant: str) -> tuple[str, list[float]]:
@@ -49,7 +54,7 @@ def parse(variant: str) -> tuple[str, list[float]]:
     name, *args = variant.split(":")
     count = {**REMAPS, **OTHERS}.get(name)
     if count is None:
-        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, posterior:C")
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C")
     try:
         numbers = [float(x) for x in args]
     except ValueError:
@@ -58,6 +63,8 @@ def parse(variant: str) -> tuple[str, list[float]]:
         sys.exit(f"variant {variant!r}: {name} takes {count} number(s) after its name, separated by ':'")
     if name == "lin" and not numbers[0] < numbers[1]:
         sys.exit(f"variant {variant!r}: lin:A:B needs A < B (the ramp from weight 0 at A to 1 at B)")
+    if name == "open" and not (numbers[0] >= 1 and numbers[0] % 2 == 1):
+        sys.exit(f"variant {variant!r}: the window K must be an odd whole number of cells")
     if name == "posterior" and not numbers[0] > 0:
         sys.exit(f"variant {variant!r}: the outlier density C must be above 0")
     return name, numbers
@@ -104,6 +111,15 @@ def apply_variant(name: str, numbers: list[float]) -> None:
     if remap is not None:
         confidence = pose_points.PointPose.point_confidence
         pose_points.PointPose.point_confidence = lambda self, c, p, K: remap(confidence(self, c, p, K))
+    elif name == "open":
+        k = int(numbers[0])
+        confidence = pose_points.PointPose.point_confidence
+
+        def opened(self, c, p, K):
+            pool = lambda x: torch.nn.functional.max_pool2d(x, k, stride=1, padding=k // 2)
+            return confidence(self, 1.0 - pool(-pool(-(1.0 - c))), p, K)
+
+        pose_points.PointPose.point_confidence = opened
     elif name == "posterior":
         point_solver.gn_steps = posterior_steps(numbers[0])
     elif name == "evidence-at-classical":
@@ -120,17 +136,30 @@ def apply_variant(name: str, numbers: list[float]) -> None:
                 self.__dict__.pop("moving_logits", None)
 
         pose_points.PointPose.forward = classical_start
+    elif name == "evidence-at-network":
+        forward = pose_points.PointPose.forward
+
+        def two_passes(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver):
+            out = forward(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver)
+            if solver is None:
+                return out
+            return forward(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, out["level_matrices"][-1], solver)
+
+        pose_points.PointPose.forward = two_passes
 
 
 def record_weights(into: list[np.ndarray]) -> None:
-    """Keep each pair's (depth, weight) of the listed points, to say where the weights fall."""
+    """Keep each pair's (depth, image row, weight) of the listed points, to say where the weights fall."""
     forward = pose_points.PointPose.forward
 
     def recording(self, *args):
         out = forward(self, *args)
         if "point_weights" in out:
-            on = args[-1]["point_mask1"][0] > 0
-            into.append(np.c_[args[-1]["points1"][0][on][:, 2].numpy(), out["point_weights"][0][on].numpy()])
+            solver = args[-1]
+            on = solver["point_mask1"][0] > 0
+            uv, _, _ = point_solver.project(solver["points1"], solver["image_intrinsics"])
+            into.append(np.c_[solver["points1"][0][on][:, 2].numpy(), uv[0][on][:, 1].numpy(),
+                              out["point_weights"][0][on].numpy()])
         return out
 
     pose_points.PointPose.forward = recording
@@ -139,9 +168,11 @@ def record_weights(into: list[np.ndarray]) -> None:
 DEPTHS = (0.0, 5.0, 10.0, 20.0, math.inf)
 
 
-def main(variant: str, drives: list[str]) -> None:
+def main(variant: str, drives: list[str], checkpoint: Path) -> None:
     """Run the variant over each drive and print its scores and where its weights fall."""
     name, numbers = parse(variant)
+    if not checkpoint.is_file():
+        sys.exit(f"{checkpoint}: no such checkpoint")
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
             sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
@@ -149,14 +180,14 @@ def main(variant: str, drives: list[str]) -> None:
     apply_variant(name, numbers)
     pairs: list[np.ndarray] = []
     record_weights(pairs)
-    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
+    model = build_model(load_checkpoint(checkpoint))
     for drive in drives:
         est = predict_sequence(model, drive)
         r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(est))
         t_rel = "n/a (under 100 m)" if r.t_rel is None else f"{r.t_rel:.4f} %"
         print(f"{variant} {Path(drive).name}: t_rel {t_rel} rpe_t {r.rpe_t * 1e3:.3f} mm "
               f"rpe_r {r.rpe_r * 1e3:.2f} mdeg ate {r.ate:.3f} m", flush=True)
-        z, w = np.concatenate(pairs).T
+        z, row, w = np.concatenate(pairs).T
         bins = []
         for lo, hi in zip(DEPTHS[:-1], DEPTHS[1:]):
             within = (z >= lo) & (z < hi)
@@ -164,10 +195,18 @@ def main(variant: str, drives: list[str]) -> None:
                 bins.append(f"{f'{lo:g}-{hi:g} m' if hi < math.inf else f'from {lo:g} m'}: {w[within].mean():.3f}")
         print(f"  mean point confidence after the variant's remap (before any Huber or posterior weight) by "
               f"depth: {', '.join(bins)}; below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
+        edges = np.quantile(row, np.linspace(0.0, 1.0, 5))
+        quarters = [f"rows {lo:.0f}-{hi:.0f}: {w[(row >= lo) & (row <= hi)].mean():.3f} (median depth "
+                    f"{np.median(z[(row >= lo) & (row <= hi)]):.1f} m)" for lo, hi in zip(edges[:-1], edges[1:])]
+        print(f"  by image row, top to bottom, a quarter of the points each: {', '.join(quarters)}", flush=True)
         pairs.clear()
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 3:
+    args = sys.argv[1:]
+    ckpt = bundled_model_dir() / "default.pt"
+    if args[:1] == ["--ckpt"] and len(args) > 1:
+        ckpt, args = Path(args[1]), args[2:]
+    if len(args) < 2:
         sys.exit(__doc__)
-    main(sys.argv[1], sys.argv[2:])
+    main(args[0], args[1:], ckpt)
