@@ -196,8 +196,10 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
         print(f"  mean point confidence after the variant's remap (before any Huber or posterior weight) by "
               f"depth: {', '.join(bins)}; below 0.5: {100 * (w < 0.5).mean():.1f} % of {len(w)} points", flush=True)
         edges = np.quantile(row, np.linspace(0.0, 1.0, 5))
-        quarters = [f"rows {lo:.0f}-{hi:.0f}: {w[(row >= lo) & (row <= hi)].mean():.3f} (median depth "
-                    f"{np.median(z[(row >= lo) & (row <= hi)]):.1f} m)" for lo, hi in zip(edges[:-1], edges[1:])]
+        quarters = []
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            within = (row >= lo) & (row <= hi)
+            quarters.append(f"rows {lo:.0f}-{hi:.0f}: {w[within].mean():.3f} (median depth {np.median(z[within]):.1f} m)")
         print(f"  by image row, top to bottom, a quarter of the points each: {', '.join(quarters)}", flush=True)
         pairs.clear()
 
