@@ -12,7 +12,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
-               "pt_refine")
+               "pt_refine", "pt_select")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -96,6 +96,12 @@ class D3LVOConfig:
     # below it; the solver then tracks the scene exactly as the classical tracker does wherever
     # the network is not fairly sure something moves. 1: the weight is the confidence itself
     pt_conf_full: float = 1.0
+    # above 0: the classical solve (every weight 1) runs beside the weighted one, and its pose is
+    # kept unless the weighted pose explains the points the network trusts better by more than
+    # this (the mean MSAC cost per point, `point_solver.consensus_gain`): on a static scene the
+    # classical pose, fitted to every point at full weight, is the better estimate, and only
+    # something that moves pulls it off the static points. 0: the weighted pose always
+    pt_select: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -158,6 +164,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_conf_power must be above 0, not {self.pt_conf_power!r}")
         if not (isinstance(self.pt_gate, (int, float)) and 0 <= self.pt_gate < 1):
             raise ValueError(f"pt_gate must be in [0, 1), not {self.pt_gate!r}")
+        if not (isinstance(self.pt_select, (int, float)) and 0 <= self.pt_select < 1):
+            raise ValueError(f"pt_select must be in [0, 1) (0: off), not {self.pt_select!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

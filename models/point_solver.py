@@ -221,6 +221,38 @@ def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: to
     return torch.where((r.abs() <= k) & (ok > 0), mask, weight)
 
 
+def residuals_at(A: torch.Tensor, points: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
+                 K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,N) residuals I_t(pi(M X)) - ref of frame t-1's points under the relative pose A (B,4,4),
+    M = A^-1, in frame t's grey (B,1,H,W), and (B,N) 1 where the point lands in view."""
+    M = gn.invert(A)
+    uv, _, front = project(points @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1), K)
+    h, w = grey2.shape[-2:]
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    return sample_at(grey2, uv)[:, 0] - ref, front * inside.to(ref.dtype)
+
+
+@full_precision
+def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tensor, grey2: torch.Tensor,
+                   points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor, cap: float = 2.0) -> torch.Tensor:
+    """(B,): how much better the weighted solve's pose A explains the points it trusts (weight at
+    least 0.5) than the classical solve's pose A_classical (both (B,4,4), frame t in frame t-1):
+    the mean over those points of min(r^2, c^2) under A_classical minus the same under A, c = `cap`
+    robust sigmas (1.4826 x the smaller median |r| of the two poses), in units of c^2: RANSAC's
+    MSAC cost, on full-resolution grey images (B,1,H,W) of both frames; weight (B,N) as `solve`'s.
+    Something that moves pulls the classical pose off the static points, and they say so; a
+    confidence that doubts static points (a false detection) leaves them explained by both."""
+    ref = sample_at(grey1, project(points, K)[0])[:, 0]
+    r, seen = residuals_at(A, points, ref, grey2, K)
+    r_c, seen_c = residuals_at(A_classical, points, ref, grey2, K)
+    ok = seen * seen_c * (weight > 0).to(ref.dtype)
+    sigma = MAD_TO_SIGMA * torch.minimum(masked_median(r.abs(), ok), masked_median(r_c.abs(), ok))
+    limit = (cap * sigma).clamp(min=1e-6) ** 2  # (B,1)
+    trusted = ok * (weight >= 0.5).to(ref.dtype)
+    cost = lambda x: torch.minimum(x * x / limit, torch.ones_like(x))  # noqa: E731
+    return ((cost(r_c) - cost(r)) * trusted).sum(-1) / trusted.sum(-1).clamp(min=1.0)
+
+
 def pyramid_input_names(levels: int) -> tuple[list[str], list[str]]:
     """The flow+pose graph's names for `image_pyramids`' tensors, finest first (what
     `d3lvo_deploy.points.solver_feeds` feeds)."""

@@ -28,7 +28,7 @@ from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
 from .layers import conv
-from .point_solver import SolverSettings, image_pyramids, project, pyramid_input_names, solve
+from .point_solver import SolverSettings, consensus_gain, image_pyramids, project, pyramid_input_names, solve
 
 
 class MovingLogits(nn.Module):
@@ -127,8 +127,18 @@ class PointPose(nn.Module):
         if self.cfg.pt_conf_full < 1:
             conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
-        levels = solve(*self.pyramids(solver), solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
+        grey1, stack2 = self.pyramids(solver)
+        levels = solve(grey1, stack2, solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
                        mask=solver["point_mask1"])
+        if self.cfg.pt_select > 0:
+            # the classical solve too, and its pose unless the weighted one explains the points
+            # the network trusts better by more than pt_select (`consensus_gain`)
+            classical = solve(grey1, stack2, solver["points1"], solver["point_mask1"], solver["image_intrinsics"], init,
+                              self.settings, mask=solver["point_mask1"])[-1]
+            gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], solver["points1"], weight,
+                                  solver["image_intrinsics"])
+            levels = [*levels[:-1], torch.where((gain > self.cfg.pt_select)[:, None, None], levels[-1], classical)]
+            out["consensus_gain"] = gain
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out

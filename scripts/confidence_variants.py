@@ -17,6 +17,12 @@ eval`'s figures:
   (the shipped weights) found, and solves again from there;
 - `open:K`: the map of p(moving) = 1 - confidence opened (eroded, then dilated) with a KxK window
   before the points read it: thin detections along edges go, blobs as wide as K cells stay;
+- `select:C:T`: the confidence-weighted and the classical pose per pair, the one with the lower
+  MSAC cost (residuals truncated at C robust sigmas, over the points of confidence T or more)
+  kept (one more solve per pair);
+- `pt_select:T`: the model's own setting `pt_select=T`: the classical pose unless the weighted one
+  explains the points the network trusts better by more than T (`point_solver.consensus_gain`;
+  one more solve per pair);
 - `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
   its residual (a Huber-shaped likelihood against a uniform one of density C on the [0, 1] grey
   scale).
@@ -29,6 +35,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import replace
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,13 +47,14 @@ from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.poses import Trajectory, read_poses
 from models import point_solver, pose_points
 from models.checkpoint import build_model, load_checkpoint
-from models.point_solver import HUBER_K, solve
+from models.point_solver import HUBER_K, MAD_TO_SIGMA, solve
 from models.predict import predict_sequence
 
 
 Remap = Callable[[torch.Tensor], torch.Tensor]
 REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
-OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1}
+OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1, "select": 2, "pt_select": 1}
+CHOICES: list[float] = []  # `select`: per pair, 1 where the classical pose was kept
 
 
 def parse(variant: str) -> tuple[str, list[float]]:
@@ -54,7 +62,7 @@ def parse(variant: str) -> tuple[str, list[float]]:
     name, *args = variant.split(":")
     count = {**REMAPS, **OTHERS}.get(name)
     if count is None:
-        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C")
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C, select:C:T, pt_select:T")
     try:
         numbers = [float(x) for x in args]
     except ValueError:
@@ -65,6 +73,10 @@ def parse(variant: str) -> tuple[str, list[float]]:
         sys.exit(f"variant {variant!r}: lin:A:B needs A < B (the ramp from weight 0 at A to 1 at B)")
     if name == "open" and not (numbers[0] >= 1 and numbers[0] % 2 == 1):
         sys.exit(f"variant {variant!r}: the window K must be an odd whole number of cells")
+    if name == "select" and not numbers[0] > 0:
+        sys.exit(f"variant {variant!r}: the truncation C (robust sigmas) must be above 0")
+    if name == "pt_select" and not 0 < numbers[0] < 1:
+        sys.exit(f"variant {variant!r}: the threshold T must be in (0, 1)")
     if name == "posterior" and not numbers[0] > 0:
         sys.exit(f"variant {variant!r}: the outlier density C must be above 0")
     return name, numbers
@@ -105,6 +117,50 @@ def posterior_steps(density: float) -> Callable:
     return steps
 
 
+def truncated_cost(A: torch.Tensor, points: torch.Tensor, mask: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
+                   K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals (B,N) of frame t-1's points under the relative pose A (B,4,4) in frame t's grey
+    at full resolution, and where they are valid (listed, in front, inside)."""
+    M = torch.linalg.inv(A)
+    uv, _, front = point_solver.project(points @ M[:, :3, :3].transpose(1, 2) + M[:, None, :3, 3], K)
+    h, w = grey2.shape[-2:]
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    r = point_solver.sample_at(grey2, uv)[:, 0] - ref
+    return r, front * inside.to(r.dtype) * (mask > 0).to(r.dtype)
+
+
+def select_pose(c: float, gate: float) -> None:
+    """Two hypotheses per pair, the confidence-weighted pose and the classical one (every weight 1),
+    scored as RANSAC's MSAC scores a hypothesis: the sum over the listed points whose confidence is
+    at least `gate` (the strong detections of movers left out) of min(r^2, (c sigma)^2), sigma 1.4826 x the smaller of the two median |r|, a point out of view at the cap;
+    the lower cost wins, the classical pose on a tie. On a static scene the classical pose, fitted
+    to every point, explains them best; where something moves, the pose that ignores it explains
+    the static majority."""
+    forward = pose_points.PointPose.forward
+
+    def selecting(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver):
+        out = forward(self, hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init, solver)
+        if solver is None:
+            return out
+        grey1, stack2 = self.pyramids(solver)
+        points, mask, Ki = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
+        classical = solve(grey1, stack2, points, mask, Ki, init, self.settings, mask=mask)[-1]
+        ref = point_solver.sample_at(grey1[0], point_solver.project(points, Ki)[0])[:, 0]
+        network = out["level_matrices"][-1]
+        scored = mask * (out["point_weights"] >= gate).to(mask.dtype)
+        (rn, okn), (rc, okc) = [truncated_cost(A, points, scored, ref, stack2[0][:, :1], Ki) for A in (network, classical)]
+        sigma = MAD_TO_SIGMA * torch.minimum(point_solver.masked_median(rn.abs(), okn),
+                                             point_solver.masked_median(rc.abs(), okc))
+        cap = (c * sigma) ** 2
+        cost = [torch.where(ok > 0, torch.minimum(r**2, cap), cap).mul(scored).sum(-1) for r, ok in ((rn, okn), (rc, okc))]
+        keep = (cost[1] <= cost[0]).to(network.dtype)
+        CHOICES.extend(keep.tolist())
+        out["level_matrices"] = [*out["level_matrices"][:-1], keep[:, None, None] * classical + (1 - keep[:, None, None]) * network]
+        return out
+
+    pose_points.PointPose.forward = selecting
+
+
 def apply_variant(name: str, numbers: list[float]) -> None:
     """Patch the model code for one variant (this process only)."""
     remap = weight_map(name, numbers)
@@ -120,6 +176,8 @@ def apply_variant(name: str, numbers: list[float]) -> None:
             return confidence(self, 1.0 - pool(-pool(-(1.0 - c))), p, K)
 
         pose_points.PointPose.point_confidence = opened
+    elif name == "select":
+        select_pose(*numbers)
     elif name == "posterior":
         point_solver.gn_steps = posterior_steps(numbers[0])
     elif name == "evidence-at-classical":
@@ -154,6 +212,8 @@ def record_weights(into: list[np.ndarray]) -> None:
 
     def recording(self, *args):
         out = forward(self, *args)
+        if "consensus_gain" in out:
+            CHOICES.extend((out["consensus_gain"] <= self.cfg.pt_select).double().tolist())
         if "point_weights" in out:
             solver = args[-1]
             on = solver["point_mask1"][0] > 0
@@ -180,7 +240,10 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
     apply_variant(name, numbers)
     pairs: list[np.ndarray] = []
     record_weights(pairs)
-    model = build_model(load_checkpoint(checkpoint))
+    ck = load_checkpoint(checkpoint)
+    if name == "pt_select":
+        ck["config"] = replace(ck["config"], pt_select=numbers[0])
+    model = build_model(ck)
     for drive in drives:
         est = predict_sequence(model, drive)
         r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(est))
@@ -202,6 +265,9 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
             quarters.append(f"rows {lo:.0f}-{hi:.0f}: {w[within].mean():.3f} (median depth {np.median(z[within]):.1f} m)")
         print(f"  by image row, top to bottom, a quarter of the points each: {', '.join(quarters)}", flush=True)
         pairs.clear()
+        if CHOICES:
+            print(f"  the classical pose kept in {100 * np.mean(CHOICES):.1f} % of {len(CHOICES)} pairs", flush=True)
+            CHOICES.clear()
 
 
 if __name__ == "__main__":

@@ -126,9 +126,11 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
   --steps 1000 --lr 3e-4 --solver-loss 1
 
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
-# measured for the direct tracker (docs/evaluation.md), and export from exactly that file
+# measured for the direct tracker (docs/evaluation.md) and the classical pose kept unless the
+# weighted one explains the trusted points better by 0.01 (pt_select, docs/model-card.md), and
+# export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
-  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3))"
+  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.01))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
