@@ -36,15 +36,16 @@ class _Block(nn.Module):
         return gn_steps(*tensors, self.s.scale_every, self.s)
 
 
-def block_graph(s: SolverSettings, capacity: int, opset: int, dynamic_batch: bool) -> onnx.GraphProto:
-    """One block of `s.scale_every` steps as a graph with inputs BODY_INPUTS and outputs (P, active);
-    the camera image's size is dynamic, as in the flow+pose graph."""
+def block_graph(s: SolverSettings, capacity: int, opset: int, dynamic_batch: bool, batch: int = 1) -> onnx.GraphProto:
+    """One block of `s.scale_every` steps as a graph with inputs BODY_INPUTS and outputs (P, active)
+    for `batch` pairs (the placeholder's; dynamic with dynamic_batch); the camera image's size is
+    dynamic, as in the flow+pose graph."""
     g = torch.Generator().manual_seed(0)
-    n, h, w = capacity, 40, 60
-    args = (torch.eye(3, 4)[None], torch.ones(1, 1, 1),
-            torch.cat([torch.rand(1, 2, n, generator=g), 5 + torch.rand(1, 1, n, generator=g), torch.ones(1, 1, n)], 1),
-            torch.rand(1, 1, n, generator=g), torch.rand(1, 3, h, w, generator=g), torch.eye(3)[None] * 0.1,
-            torch.full((1, 2, 1), 50.0), torch.ones(1, 1, n), torch.ones(1, 1, n), torch.ones(1, 1, n))
+    n, h, w, b = capacity, 40, 60, batch
+    args = (torch.eye(3, 4).expand(b, 3, 4), torch.ones(b, 1, 1),
+            torch.cat([torch.rand(b, 2, n, generator=g), 5 + torch.rand(b, 1, n, generator=g), torch.ones(b, 1, n)], 1),
+            torch.rand(b, 1, n, generator=g), torch.rand(b, 3, h, w, generator=g), torch.eye(3).expand(b, 3, 3) * 0.1,
+            torch.full((b, 2, 1), 50.0), torch.ones(b, 1, n), torch.ones(b, 1, n), torch.ones(b, 1, n))
     dynamic = {"stack": {2: "image_height", 3: "image_width"}}
     if dynamic_batch:
         for name in BODY_INPUTS + ("P_next", "active_next"):
@@ -116,10 +117,11 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
             nodes.append(node)
             continue
         a = {x.name: helper.get_attribute_value(x) for x in node.attribute}
-        key = (a["block"], a["stop"], a["damping"], a["capacity"])
+        batch = a.get("batch", 1)
+        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch)
         if key not in blocks:
             s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"])
-            blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch)
+            blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch)
         trips = a["trips"]
         prefix = f"gn_loop{loops}/"
         loops += 1

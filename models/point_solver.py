@@ -153,17 +153,17 @@ class _GaussNewtonLoop(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings,
-                capacity: int):
+                capacity: int, batch: int):
         for _ in range(trips):
             P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, s.scale_every, s)
         return P, active
 
     @staticmethod
     def symbolic(g, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings,
-                 capacity: int):
+                 capacity: int, batch: int):
         out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
                    trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping,
-                   capacity_i=capacity, outputs=2)
+                   capacity_i=capacity, batch_i=batch, outputs=2)
         for o, like in zip(out, (P, active)):
             o.setType(like.type())
         return out
@@ -192,7 +192,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     trips, rest = divmod(iterations, s.scale_every)
     if torch.onnx.is_in_onnx_export() and trips > 1:
-        P, active = _GaussNewtonLoop.apply(P, active, *ctx, trips, s, int(X.shape[1]))
+        P, active = _GaussNewtonLoop.apply(P, active, *ctx, trips, s, int(X.shape[1]), int(X.shape[0]))
     else:
         # torch.compile takes every block: a data-dependent break would split its fused graph
         may_break = not (torch.jit.is_tracing() or torch.compiler.is_compiling())

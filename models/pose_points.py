@@ -128,17 +128,22 @@ class PointPose(nn.Module):
             conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
         grey1, stack2 = self.pyramids(solver)
-        levels = solve(grey1, stack2, solver["points1"], weight, solver["image_intrinsics"], init, self.settings,
-                       mask=solver["point_mask1"])
+        points, mask, K_image = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
         if self.cfg.pt_select > 0:
-            # the classical solve too, and its pose unless the weighted one explains the points
-            # the network trusts better by more than pt_select (`consensus_gain`)
-            classical = solve(grey1, stack2, solver["points1"], solver["point_mask1"], solver["image_intrinsics"], init,
-                              self.settings, mask=solver["point_mask1"])[-1]
-            gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], solver["points1"], weight,
-                                  solver["image_intrinsics"])
+            # the classical solve too, as the second half of one batch (a step's time is per-op
+            # overhead, so two pairs cost about what one does), and its pose unless the weighted
+            # one explains the points the network trusts better by more than pt_select
+            # (`consensus_gain`)
+            two = lambda x: torch.cat([x, x], 0)  # noqa: E731
+            b = weight.shape[0]
+            both = solve([two(g) for g in grey1], [two(g) for g in stack2], two(points), torch.cat([weight, mask], 0),
+                         two(K_image), two(init), self.settings, mask=two(mask))
+            levels, classical = [L[:b] for L in both], both[-1][b:]
+            gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], points, weight, K_image)
             levels = [*levels[:-1], torch.where((gain > self.cfg.pt_select)[:, None, None], levels[-1], classical)]
             out["consensus_gain"] = gain
+        else:
+            levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask)
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out
