@@ -205,6 +205,17 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     return P[:, :, :3], P[:, :, 3:].transpose(1, 2)
 
 
+def residuals_at(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
+                 K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,N) residuals I_t(pi(R X + t)) - ref of frame t-1's points X (B,N,3) under R (B,3,3), t
+    (B,1,3), which map them into frame t, in frame t's grey (B,1,H,W), and (B,N) 1 where the point
+    lands in view."""
+    uv, _, front = project(X @ R.transpose(1, 2) + t, K)
+    h, w = grey2.shape[-2:]
+    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    return sample_at(grey2, uv)[:, 0] - ref, front * inside.to(ref.dtype)
+
+
 def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
                       K: torch.Tensor, weight: torch.Tensor, mask: torch.Tensor,
                       median_mask: torch.Tensor) -> torch.Tensor:
@@ -212,24 +223,10 @@ def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: to
     in frame t's grey within the Huber threshold of all residuals), else `weight`. The confidence
     is a prior read before the pose is known; a point that the pose fits is static evidence
     whatever the prior said, and a mover stays down: under the right pose its residual is large."""
-    uv, _, front = project(X @ R.transpose(1, 2) + t, K)
-    h, w = stack.shape[-2:]
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    r = sample_at(stack[:, :1], uv)[:, 0] - ref
-    ok = front * inside.to(r.dtype) * (mask > 0).to(r.dtype)
+    r, seen = residuals_at(R, t, X, ref, stack[:, :1], K)
+    ok = seen * (mask > 0).to(r.dtype)
     k = huber_threshold(r, ok * median_mask)
     return torch.where((r.abs() <= k) & (ok > 0), mask, weight)
-
-
-def residuals_at(A: torch.Tensor, points: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
-                 K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B,N) residuals I_t(pi(M X)) - ref of frame t-1's points under the relative pose A (B,4,4),
-    M = A^-1, in frame t's grey (B,1,H,W), and (B,N) 1 where the point lands in view."""
-    M = gn.invert(A)
-    uv, _, front = project(points @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1), K)
-    h, w = grey2.shape[-2:]
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    return sample_at(grey2, uv)[:, 0] - ref, front * inside.to(ref.dtype)
 
 
 @full_precision
@@ -243,8 +240,9 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     Something that moves pulls the classical pose off the static points, and they say so; a
     confidence that doubts static points (a false detection) leaves them explained by both."""
     ref = sample_at(grey1, project(points, K)[0])[:, 0]
-    r, seen = residuals_at(A, points, ref, grey2, K)
-    r_c, seen_c = residuals_at(A_classical, points, ref, grey2, K)
+    M, M_c = gn.invert(A), gn.invert(A_classical)
+    r, seen = residuals_at(M[:, :3, :3], M[:, :3, 3:].transpose(1, 2), points, ref, grey2, K)
+    r_c, seen_c = residuals_at(M_c[:, :3, :3], M_c[:, :3, 3:].transpose(1, 2), points, ref, grey2, K)
     ok = seen * seen_c * (weight > 0).to(ref.dtype)
     sigma = MAD_TO_SIGMA * torch.minimum(masked_median(r.abs(), ok), masked_median(r_c.abs(), ok))
     limit = (cap * sigma).clamp(min=1e-6) ** 2  # (B,1)

@@ -36,8 +36,8 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import replace
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +55,7 @@ from models.predict import predict_sequence
 Remap = Callable[[torch.Tensor], torch.Tensor]
 REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
 OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1, "select": 2, "pt_select": 1}
-CHOICES: list[float] = []  # `select`: per pair, 1 where the classical pose was kept
+CHOICES: list[float] = []  # `select`, `pt_select`: per pair, 1 where the classical pose was kept
 
 
 def parse(variant: str) -> tuple[str, list[float]]:
@@ -123,11 +123,8 @@ def truncated_cost(A: torch.Tensor, points: torch.Tensor, mask: torch.Tensor, re
     """Residuals (B,N) of frame t-1's points under the relative pose A (B,4,4) in frame t's grey
     at full resolution, and where they are valid (listed, in front, inside)."""
     M = torch.linalg.inv(A)
-    uv, _, front = point_solver.project(points @ M[:, :3, :3].transpose(1, 2) + M[:, None, :3, 3], K)
-    h, w = grey2.shape[-2:]
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    r = point_solver.sample_at(grey2, uv)[:, 0] - ref
-    return r, front * inside.to(r.dtype) * (mask > 0).to(r.dtype)
+    r, seen = point_solver.residuals_at(M[:, :3, :3], M[:, None, :3, 3], points, ref, grey2, K)
+    return r, seen * (mask > 0).to(r.dtype)
 
 
 def select_pose(c: float, gate: float) -> None:
