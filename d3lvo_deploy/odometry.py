@@ -87,13 +87,21 @@ class Odometry:
     def needs_scan(self) -> bool:
         return self.model.depth_input != "none"
 
+    @property
+    def keeps_own_start(self) -> bool:
+        """The next pair's start is not the last pose's motion: a resumed run needs `motion2`
+        saved beside the poses (`d3lvo_deploy.pipeline`)."""
+        return "start_next" in self.model.output_names("flowpose")
+
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
         self._prev: dict[str, np.ndarray] | None = None
         self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
         self.relative = np.eye(4)
         # the last pair's motion of the image_2 camera: where the Gauss-Newton head starts the next
-        # pair (constant velocity; identity on the first pair, a cold start)
+        # pair (constant velocity; identity on the first pair, a cold start). A graph with
+        # `start_next` (`keeps_own_start`) says where instead: its weighted pose, which its kept pose
+        # need not be
         self.motion2 = np.eye(4)
         self.frames = 0
 
@@ -177,20 +185,25 @@ class Odometry:
             # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
             # that an interrupted and resumed run starts every pair where an uninterrupted one does
             self.motion2 = self._motion_between(before, self.pose)
+            if "start_next" in out:
+                self.motion2 = out["start_next"][0].astype(np.float64)
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
         self.frames += 1
         return self.pose.copy()
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
-              previous_pose: np.ndarray | None = None) -> None:
+              previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
         """Resume: take frame t-1 and its known pose without estimating anything; with the pose
-        before it, the next pair starts from that motion, as an uninterrupted run would."""
+        before it, the next pair starts from that motion, as an uninterrupted run would (or from
+        `start`, the saved `motion2`, where the graph `keeps_own_start`)."""
         self._prev = self.encode(image, points)
         self.pose = np.array(pose, dtype=np.float64)
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)
+        if start is not None:
+            self.motion2 = np.array(start, dtype=np.float64)
         self.frames += 1
 
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:

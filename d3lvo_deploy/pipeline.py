@@ -9,6 +9,7 @@ digits, which read back to the same float64).
 from __future__ import annotations
 
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing, nullcontext
 from dataclasses import dataclass, field, replace
@@ -93,6 +94,28 @@ def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
     if len(traj) > n_max:
         raise D3LVOInputError(path, f"holds {len(traj)} poses, more than the {n_max} frames of this run")
     return traj.poses
+
+
+def start_file(out: Path) -> Path:
+    """Where a run whose graph keeps its own start (`Odometry.keeps_own_start`) saves, per frame,
+    the next pair's start, so that --resume continues exactly where the run stopped."""
+    return out.with_name(out.name + ".start")
+
+
+def _saved_starts(path: Path, count: int) -> np.ndarray | None:
+    """The first `count` starts saved in `path` (4x4 each; the file rewritten to hold just
+    those), or None where fewer were saved."""
+    try:
+        rows = [r.split() for r in path.read_text().splitlines()]
+    except OSError:
+        return None
+    rows = [r for r in rows if len(r) == 12]
+    if len(rows) < count:
+        return None
+    path.write_text("".join(" ".join(r) + "\n" for r in rows[:count]))
+    T = np.tile(np.eye(4), (count, 1, 1))
+    T[:, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, 3, 4)
+    return T
 
 
 def _write_viz(path: Path, view: dict) -> None:
@@ -181,11 +204,25 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
 
         recorder = RerunRecorder(Path(rc.rerun_path), seq.calib)
     pictures = rc.viz_dir is not None or recorder is not None
-    with fh, closing(recorder) if recorder is not None else nullcontext():
+    starts = None  # the next pair's start, per frame, where the graph keeps its own
+    if getattr(odo, "keeps_own_start", False):
+        saved = _saved_starts(start_file(out), len(done)) if len(done) else None
+        if len(done) and saved is None:
+            warnings.warn(f"{start_file(out)}: the solver's saved starts are missing or short, so the resumed run "
+                          "starts from the last poses' motion and may differ slightly from an uninterrupted run")
+        try:
+            starts = open(start_file(out), "a" if saved is not None else "w", buffering=1)
+        except OSError as e:
+            fh.close()
+            raise D3LVOInputError(start_file(out), f"cannot write the solver's starts ({e.strerror})") from None
+        if saved is None and len(done):  # rows from here on line up with the poses again
+            starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * len(done)))
+    with fh, closing(recorder) if recorder is not None else nullcontext(), starts or nullcontext():
         if len(done):
             k = rc.start + len(done) - 1
+            extra = {} if starts is None or saved is None else {"start": saved[-1]}
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
-                      done[-2] if len(done) >= 2 else None)
+                      done[-2] if len(done) >= 2 else None, **extra)
         t_wall0 = time.perf_counter()
         pipelined = rc.pipeline and hasattr(odo, "prepare") and n - len(done) > 1
         summary.pipelined = pipelined
@@ -235,6 +272,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 if recorder is not None:
                     recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
                 line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
+                if starts is not None:  # before the pose: a run stopped between the two resumes exactly
+                    starts.write(format_kitti(odo.motion2) + "\n")
                 fh.write(line + "\n")
                 fh.flush()
                 for k, v in odo.last_timing.ms.items():

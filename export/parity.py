@@ -119,7 +119,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     prev_t = prev_o = None
     chain_t, chain_o, chain_f = [], [], []
     # each side starts the Gauss-Newton head from its own previous motion, as the runtime does
-    motion_t = motion_o = motion_f = np.eye(4)
+    motion_t = motion_o = motion_f = np.eye(4)  # each side's next start (`start_next` where the graph has it)
     K = torch.tensor([[pre.K[0, 0], pre.K[1, 1], pre.K[0, 2], pre.K[1, 2]]], dtype=torch.float32)
     raw_prev = None
     geometric = ort_model.geometric
@@ -162,24 +162,24 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             fp_same = ort_model.flow_pose(prev_t, enc_t, cam_t)
             for k in fp_t:
                 diff("flowpose", k).update(fp_t[k], fp_same[k])
-            motion_t = fp_t["matrix"][0].astype(np.float64)
+            motion_t = fp_t.get("start_next", fp_t["matrix"])[0].astype(np.float64)
             out_o = ort_model.flow_pose(prev_o, enc_o, cam_o)
-            motion_o = out_o["matrix"][0].astype(np.float64)
-            chain_t.append(motion_t)
-            chain_o.append(motion_o)
+            motion_o = out_o.get("start_next", out_o["matrix"])[0].astype(np.float64)
+            chain_t.append(fp_t["matrix"][0].astype(np.float64))
+            chain_o.append(out_o["matrix"][0].astype(np.float64))
         raw = _forward_inputs(pre, seq, i, cfg)
         if raw_prev is not None:
             init = torch.from_numpy(motion_f.astype(np.float32))[None] if geometric else None
             solver = None if feeds is None else {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in feeds.items()}
             fwd = model(raw_prev[0], raw[0], raw_prev[1], raw[1], K if geometric else None, init, solver)
-            motion_f = fwd["matrix"][0].double().numpy()
+            motion_f = fwd.get("start_next", fwd["matrix"])[0].double().numpy()
             # the engine's flows and confidences against forward's, output by output
             for lvl, f in zip(cfg.flow_levels, fwd["flows"]):
                 diff("vs_forward", f"flow_l{lvl}").update(f.numpy(), out_o[f"flow_l{lvl}"])
             conf_levels = (cfg.flow_levels[-1],) if cfg.point_solver else cfg.gn_levels
             for lvl, c in zip(conf_levels if "confidence" in fwd else (), fwd.get("confidence", [])):
                 diff("vs_forward", f"confidence_l{lvl}").update(c.numpy(), out_o[f"confidence_l{lvl}"])
-            chain_f.append(motion_f)
+            chain_f.append(fwd["matrix"][0].double().numpy())
         prev_t, prev_o, raw_prev, solver_prev = enc_t, enc_o, raw, solver_cur
     rep.chained_t_m, rep.chained_r_deg = _largest_motion(relative(np.array(chain_t), np.array(chain_o)))
     rep.reference_t_m, rep.reference_r_deg = _largest_motion(relative(np.array(chain_f), np.array(chain_o)))

@@ -59,7 +59,8 @@ def flowpose_output_names(model: D3LVO) -> list[str]:
     cfg = model.cfg
     conf = [f"confidence_l{cfg.flow_levels[-1]}", "point_weights"] if cfg.point_solver else \
         [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
-    return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"]
+    start = ["start_next"] if cfg.point_solver and cfg.pt_select > 0 else []
+    return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"] + start
 
 
 class CompletionStage(nn.Module):
@@ -117,5 +118,6 @@ class FlowPoseStage(nn.Module):
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
                                    levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))
         extra = [out["point_weights"]] if "point_weights" in out else []
+        start = [out["start_next"]] if "start_next" in out else []
         return (*out["flows"], *out.get("confidence", []), *extra, out["poses"], out["weights"], out["pose"],
-                out["matrix"])
+                out["matrix"], *start)

@@ -144,6 +144,8 @@ class D3LVO(nn.Module):
             # pair's start, and float32 drift from a rotation would grow there frame after frame
             final = normalise_pose(levels[:, -1])
             out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
+            if "start_next" in res:  # `pt_select`: the weighted pose, the next pair's start
+                out["start_next"] = pose_to_matrix(normalise_pose(gn.matrix_to_pose(res["start_next"])))
             return out
         if self.gn_pose is None:
             levels = torch.stack(poses, 1)  # (B, L, 7)

@@ -140,6 +140,9 @@ class PointPose(nn.Module):
                          two(K_image), two(init), self.settings, mask=two(mask))
             levels, classical = [L[:b] for L in both], both[-1][b:]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], points, weight, K_image)
+            # the next pair starts from the weighted pose, whichever is kept: started from a
+            # classical pose that tracked a vehicle, the weighted solve would track it too
+            out["start_next"] = levels[-1]
             levels = [*levels[:-1], torch.where((gain > self.cfg.pt_select)[:, None, None], levels[-1], classical)]
             out["consensus_gain"] = gain
         else:

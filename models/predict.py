@@ -40,8 +40,8 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
                 feeds = solver_feeds(solver_prev, solver_cur, seq.calib.K2, model.cfg.pt_capacity)
                 solver = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev) for k, v in feeds.items()}
             out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
-            motion = out["matrix"]
-            A2 = motion[0].double().cpu().numpy()
+            A2 = out["matrix"][0].double().cpu().numpy()
+            motion = out.get("start_next", out["matrix"])  # the next pair's start (`pt_select`: the weighted pose)
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
         prev, solver_prev = cur, solver_cur
     return accumulate(np.array(rel).reshape(-1, 4, 4))

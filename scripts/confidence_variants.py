@@ -24,6 +24,8 @@ eval`'s figures:
 - `pt_select:T`: the model's own setting `pt_select=T`: the classical pose unless the weighted one
   explains the points the network trusts better by more than T (`point_solver.consensus_gain`;
   one more solve per pair);
+- `kept-start:T`: `pt_select:T`, but each pair starts from the pose kept at the previous pair
+  rather than from its weighted pose (the graph's `start_next`, what the bundled model does);
 - `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
   its residual (a Huber-shaped likelihood against a uniform one of density C on the [0, 1] grey
   scale).
@@ -54,7 +56,8 @@ from models.predict import predict_sequence
 
 Remap = Callable[[torch.Tensor], torch.Tensor]
 REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
-OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1, "select": 2, "pt_select": 1}
+OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1, "select": 2,
+          "pt_select": 1, "kept-start": 1}
 CHOICES: list[float] = []  # `select`, `pt_select`: per pair, 1 where the classical pose was kept
 
 
@@ -63,7 +66,7 @@ def parse(variant: str) -> tuple[str, list[float]]:
     name, *args = variant.split(":")
     count = {**REMAPS, **OTHERS}.get(name)
     if count is None:
-        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C, select:C:T, pt_select:T")
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C, select:C:T, pt_select:T, kept-start:T")
     try:
         numbers = [float(x) for x in args]
     except ValueError:
@@ -76,7 +79,7 @@ def parse(variant: str) -> tuple[str, list[float]]:
         sys.exit(f"variant {variant!r}: the window K must be an odd whole number of cells")
     if name == "select" and not numbers[0] > 0:
         sys.exit(f"variant {variant!r}: the truncation C (robust sigmas) must be above 0")
-    if name == "pt_select" and not 0 < numbers[0] < 1:
+    if name in ("pt_select", "kept-start") and not 0 < numbers[0] < 1:
         sys.exit(f"variant {variant!r}: the threshold T must be in (0, 1)")
     if name == "posterior" and not numbers[0] > 0:
         sys.exit(f"variant {variant!r}: the outlier density C must be above 0")
@@ -176,6 +179,15 @@ def apply_variant(name: str, numbers: list[float]) -> None:
         pose_points.PointPose.point_confidence = opened
     elif name == "select":
         select_pose(*numbers)
+    elif name == "kept-start":
+        forward = pose_points.PointPose.forward
+
+        def kept_start(self, *args):
+            out = forward(self, *args)
+            out.pop("start_next", None)  # `predict_sequence` then starts from the kept pose
+            return out
+
+        pose_points.PointPose.forward = kept_start
     elif name == "posterior":
         point_solver.gn_steps = posterior_steps(numbers[0])
     elif name == "evidence-at-classical":
@@ -241,7 +253,7 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
     ck = load_checkpoint(checkpoint)
     # every variant but pt_select:T scores the weighted pose alone (the bundled model keeps the
     # classical pose where the weighted one does not explain the trusted points better)
-    ck["config"] = replace(ck["config"], pt_select=numbers[0] if name == "pt_select" else 0.0)
+    ck["config"] = replace(ck["config"], pt_select=numbers[0] if name in ("pt_select", "kept-start") else 0.0)
     model = build_model(ck)
     for drive in drives:
         est = predict_sequence(model, drive)

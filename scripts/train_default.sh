@@ -148,6 +148,10 @@ done
 drive traffic_309 --frames 200 --seed 309 --motion-from "$GT/09.txt" --motion-start 200 --traffic 3
 drive traffic_310 --frames 200 --seed 310 --motion-from "$GT/10.txt" --motion-start 300 --traffic 5
 drive traffic_311 --frames 200 --seed 311 --motion-from "$GT/09.txt" --motion-start 900 --traffic 8
+drive traffic_312 --frames 200 --seed 312 --motion-from "$GT/09.txt" --motion-start 400 --traffic 2
+drive traffic_313 --frames 200 --seed 313 --motion-from "$GT/10.txt" --motion-start 0 --traffic 4
+drive traffic_314 --frames 200 --seed 314 --motion-from "$GT/09.txt" --motion-start 1350 --traffic 6
+drive traffic_315 --frames 200 --seed 315 --motion-from "$GT/10.txt" --motion-start 800 --traffic 10
 
 # the tables of docs/evaluation.md: the bundled network beside its classical mode (--method
 # direct), the cell-solver network, the MLP head and the rgb ablation; `d3lvo run` scores each run
@@ -156,6 +160,10 @@ for s in heldout_09 heldout_10 static_219 static_220 traffic_309 traffic_310 tra
   "$D3LVO" run --seq-dir "$OUT/data/$s" --out "$OUT/eval/default_$s.txt" --overwrite
   "$D3LVO" run --seq-dir "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/cells_onnx" --out "$OUT/eval/cells_$s.txt" --overwrite
+done
+for s in traffic_312 traffic_313 traffic_314 traffic_315; do
+  "$D3LVO" run --seq-dir "$OUT/data/$s" --out "$OUT/eval/default_$s.txt" --overwrite
+  "$D3LVO" run --seq-dir "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 for s in $(seq 221 231); do
   "$D3LVO" run --seq-dir "$OUT/data/static_$s" --out "$OUT/eval/default_static_$s.txt" --overwrite

@@ -152,6 +152,38 @@ def test_resume_after_partial_run_is_identical(small_model, small_synth, tmp_pat
     assert (tmp_path / "part.txt").read_text() == (tmp_path / "full.txt").read_text()
 
 
+def test_resume_restores_the_start_a_graph_keeps_of_its_own(small_synth, tmp_path):
+    """The bundled graph starts each pair from its weighted pose (`start_next`), which the pose it
+    keeps need not be, so the poses alone cannot tell a resumed run where to start: the run saves
+    each frame's start beside the poses (the same as the API's `Odometry.motion2` after that
+    frame), and a resumed run reads it back and writes what the uninterrupted run wrote. Without
+    that file it warns and still finishes."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.pipeline import start_file
+
+    model = bundled_model_dir()
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(model, seq.calib)
+    assert odo.keeps_own_start
+    starts = []
+    for i in range(len(seq)):
+        odo.step(seq.image(i), seq.scan(i))
+        starts.append(odo.motion2[:3].reshape(-1))
+    full, part = tmp_path / "full.txt", tmp_path / "part.txt"
+    run_sequence(seq, model, RunConfig(out=full))
+    saved = np.loadtxt(start_file(full))
+    np.testing.assert_allclose(saved, np.array(starts), atol=1e-7)
+    run_sequence(seq, model, RunConfig(out=part, end=3))
+    s = run_sequence(seq, model, RunConfig(out=part, resume=True))
+    assert s.resumed_from == 3 and part.read_text() == full.read_text()
+    assert start_file(part).read_text() == start_file(full).read_text()
+    run_sequence(seq, model, RunConfig(out=part, end=3, overwrite=True))
+    start_file(part).unlink()
+    with pytest.warns(UserWarning, match="saved starts are missing"):
+        s = run_sequence(seq, model, RunConfig(out=part, resume=True))
+    assert s.resumed_from == 3 and len(read_poses(part)) == len(seq)
+
+
 def test_killed_run_resumes_to_the_same_file(small_model, small_synth, tmp_path):
     """A real SIGKILL after exactly 3 poses, then --resume. The run is paced by times.txt
     (--realtime) and frame 3 is stamped 1000 s later, so it is asleep with 3 poses written when
