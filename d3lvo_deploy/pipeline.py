@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import closing, nullcontext
+from contextlib import ExitStack, closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -104,18 +104,40 @@ def start_file(out: Path) -> Path:
 
 def _saved_starts(path: Path, count: int) -> np.ndarray | None:
     """The first `count` starts saved in `path` (4x4 each; the file rewritten to hold just
-    those), or None where fewer were saved."""
+    those), or None where fewer were saved or they cannot be read."""
     try:
         rows = [r.split() for r in path.read_text().splitlines()]
-    except OSError:
+        rows = [r for r in rows if len(r) == 12]
+        if len(rows) < count:
+            return None
+        T = np.tile(np.eye(4), (count, 1, 1))
+        T[:, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, 3, 4)
+        path.write_text("".join(" ".join(r) + "\n" for r in rows[:count]))
+    except (OSError, ValueError):  # UnicodeDecodeError is a ValueError
         return None
-    rows = [r for r in rows if len(r) == 12]
-    if len(rows) < count:
-        return None
-    path.write_text("".join(" ".join(r) + "\n" for r in rows[:count]))
-    T = np.tile(np.eye(4), (count, 1, 1))
-    T[:, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, 3, 4)
     return T
+
+
+def _open_starts(odo, out: Path, done: int, stack: ExitStack):
+    """(the file each frame's start is appended to, the saved starts a resumed run begins from)
+    where the tracker keeps its own start; else (None, None), and any start file beside `out`
+    removed: it cannot belong to poses this tracker writes."""
+    path = start_file(out)
+    if not getattr(odo, "keeps_own_start", False):
+        try:
+            path.unlink(missing_ok=True)
+        except OSError:
+            pass
+        return None, None
+    saved = _saved_starts(path, done) if done else None
+    if done > 1 and saved is None:
+        warnings.warn(f"{path}: the solver's saved starts are missing or short, so the resumed run starts from "
+                      "the last poses' motion and may differ slightly from an uninterrupted run")
+    try:
+        fh = stack.enter_context(open(path, "a" if saved is not None else "w", buffering=1))
+    except OSError as e:
+        raise D3LVOInputError(path, f"cannot write the solver's starts ({e.strerror})") from None
+    return fh, saved
 
 
 def _write_viz(path: Path, view: dict) -> None:
@@ -198,31 +220,22 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         fh = open(out, mode, buffering=1)
     except OSError as e:
         raise D3LVOInputError(out, f"cannot write the trajectory ({e.strerror})") from None
-    recorder = None
-    if rc.rerun_path is not None:
-        from .recording import RerunRecorder
+    with ExitStack() as stack:
+        stack.enter_context(fh)
+        recorder = None
+        if rc.rerun_path is not None:
+            from .recording import RerunRecorder
 
-        recorder = RerunRecorder(Path(rc.rerun_path), seq.calib)
-    pictures = rc.viz_dir is not None or recorder is not None
-    starts = None  # the next pair's start, per frame, where the graph keeps its own
-    if getattr(odo, "keeps_own_start", False):
-        saved = _saved_starts(start_file(out), len(done)) if len(done) else None
-        if len(done) and saved is None:
-            warnings.warn(f"{start_file(out)}: the solver's saved starts are missing or short, so the resumed run "
-                          "starts from the last poses' motion and may differ slightly from an uninterrupted run")
-        try:
-            starts = open(start_file(out), "a" if saved is not None else "w", buffering=1)
-        except OSError as e:
-            fh.close()
-            raise D3LVOInputError(start_file(out), f"cannot write the solver's starts ({e.strerror})") from None
-        if saved is None and len(done):  # rows from here on line up with the poses again
-            starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * len(done)))
-    with fh, closing(recorder) if recorder is not None else nullcontext(), starts or nullcontext():
+            recorder = stack.enter_context(closing(RerunRecorder(Path(rc.rerun_path), seq.calib)))
+        pictures = rc.viz_dir is not None or recorder is not None
+        starts, saved = _open_starts(odo, out, len(done), stack)
         if len(done):
             k = rc.start + len(done) - 1
-            extra = {} if starts is None or saved is None else {"start": saved[-1]}
+            extra = {} if saved is None else {"start": saved[-1]}
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
                       done[-2] if len(done) >= 2 else None, **extra)
+            if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
+                starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * (len(done) - 1) + [odo.motion2]))
         t_wall0 = time.perf_counter()
         pipelined = rc.pipeline and hasattr(odo, "prepare") and n - len(done) > 1
         summary.pipelined = pipelined

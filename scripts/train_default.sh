@@ -152,6 +152,12 @@ drive traffic_312 --frames 200 --seed 312 --motion-from "$GT/09.txt" --motion-st
 drive traffic_313 --frames 200 --seed 313 --motion-from "$GT/10.txt" --motion-start 0 --traffic 4
 drive traffic_314 --frames 200 --seed 314 --motion-from "$GT/09.txt" --motion-start 1350 --traffic 6
 drive traffic_315 --frames 200 --seed 315 --motion-from "$GT/10.txt" --motion-start 800 --traffic 10
+# validation drives of where each pair starts (docs/model-card.md: the kept pose or the weighted one)
+drive val_traffic_3 --frames 200 --seed 606 --motion-from "$GT/05.txt" --motion-start 600 --traffic 4
+drive val_traffic_4 --frames 200 --seed 607 --motion-from "$GT/00.txt" --motion-start 3000 --traffic 8
+for v in kept-start:0.01 pt_select:0.01; do
+  .venv/bin/python scripts/confidence_variants.py "$v" "$OUT/data/val_traffic_3" "$OUT/data/val_traffic_4"
+done
 
 # the tables of docs/evaluation.md: the bundled network beside its classical mode (--method
 # direct), the cell-solver network, the MLP head and the rgb ablation; `d3lvo run` scores each run
