@@ -185,8 +185,9 @@ class Odometry:
             # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
             # that an interrupted and resumed run starts every pair where an uninterrupted one does
             self.motion2 = self._motion_between(before, self.pose)
-            if "start_next" in out:
-                self.motion2 = out["start_next"][0].astype(np.float64)
+            start = out.get("start_next")
+            if start is not None and np.all(np.isfinite(start)):
+                self.motion2 = start[0].astype(np.float64)
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
         self.frames += 1
