@@ -7,7 +7,7 @@ weights (or `--ckpt`'s) over whole drives (`models.predict.predict_sequence`) an
 eval`'s figures:
 
 - `conf`: the shipped weight, the point's confidence (the weighted pose; every variant but
-  `pt_select:T` runs with `pt_select = 0`);
+  `pt_select:T` and `kept-start:T` runs with `pt_select = 0`);
 - `ones`: every weight 1, the classical mode;
 - `lin:A:B`: (conf - A) / (B - A) clipped to [0, 1] (`pt_conf_full=C` is `lin:0:C`);
 - `strong:T`: only confidences below T kept, the rest 1; `mild:T`: confidences below T set to 1;
@@ -251,7 +251,7 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
     pairs: list[np.ndarray] = []
     record_weights(pairs)
     ck = load_checkpoint(checkpoint)
-    # every variant but pt_select:T scores the weighted pose alone (the bundled model keeps the
+    # every variant but pt_select:T and kept-start:T scores the weighted pose alone (the bundled model keeps the
     # classical pose where the weighted one does not explain the trusted points better)
     ck["config"] = replace(ck["config"], pt_select=numbers[0] if name in ("pt_select", "kept-start") else 0.0)
     model = build_model(ck)
