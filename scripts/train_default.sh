@@ -127,10 +127,12 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
 # measured for the direct tracker (docs/evaluation.md) and the classical pose kept unless the
-# weighted one explains the trusted points better by 0.01 (pt_select, docs/model-card.md), and
-# export from exactly that file
+# weighted one explains the trusted points better by 0.01 (pt_select, docs/model-card.md), each
+# point weighted by its confidence to the fourth power (pt_conf_power, chosen on the validation
+# drives at the end of this script), and export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
-  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.01))"
+  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.01, \
+  pt_conf_power=4.0))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
@@ -193,5 +195,21 @@ for c in 0.5 0.7 0.85; do
   for s in val_traffic val_static; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
       --overwrite
+  done
+done
+
+# the power that turns a confidence into a weight (pt_conf_power), on the validation drives with
+# and without traffic (docs/model-card.md#solver-settings): 4 ships
+drive val_traffic_2 --frames 200 --seed 605 --motion-from "$GT/02.txt" --motion-start 1500 --traffic 6
+for spec in "602 03 300" "603 07 500" "604 06 200"; do
+  read -r seed sq start <<< "$spec"
+  [ -f "$OUT/data/val_static_$((seed - 600))/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$((seed - 600))" \
+    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+done
+for p in 1 2 4 8; do
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/power_$p" --set pt_conf_power=$p
+  for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4; do
+    "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_$p" --backend onnxruntime --threads 1 \
+      --out "$OUT/eval/power_${p}_$s.txt" --overwrite
   done
 done
