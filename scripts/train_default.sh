@@ -213,3 +213,26 @@ for p in 1 2 4 8; do
       --out "$OUT/eval/power_${p}_$s.txt" --overwrite
   done
 done
+
+# at power 4, the static prior and a higher selection threshold, on those validation drives and six
+# more (docs/model-card.md#solver-settings): neither ships
+drive val_traffic_612 --frames 200 --seed 612 --motion-from "$GT/08.txt" --motion-start 1500 --traffic 5
+drive val_traffic_613 --frames 200 --seed 613 --motion-from "$GT/00.txt" --motion-start 1500 --traffic 3
+for spec in "608 00 1000" "609 02 2000" "610 05 1200" "611 08 3000"; do
+  read -r seed sq start <<< "$spec"
+  [ -f "$OUT/data/val_static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$seed" \
+    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+done
+VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_traffic_612 val_traffic_613 val_static val_static_2
+     val_static_3 val_static_4 val_static_608 val_static_609 val_static_610 val_static_611)
+for s in "${VAL[@]}"; do
+  "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --backend onnxruntime --threads 1 --out "$OUT/eval/bundled_$s.txt" --overwrite
+done
+for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$set" --set "$set"
+  for s in "${VAL[@]}"; do
+    "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/$set" --backend onnxruntime --threads 1 --out "$OUT/eval/${set}_$s.txt" \
+      --overwrite
+  done
+done
