@@ -223,11 +223,16 @@ for spec in "608 00 1000" "609 02 2000" "610 05 1200" "611 08 3000"; do
   [ -f "$OUT/data/val_static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$seed" \
     --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
 done
-VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_traffic_612 val_traffic_613 val_static val_static_2
-     val_static_3 val_static_4 val_static_608 val_static_609 val_static_610 val_static_611)
-for s in "${VAL[@]}"; do
+NEW=(val_traffic_612 val_traffic_613 val_static_608 val_static_609 val_static_610 val_static_611)
+VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4 "${NEW[@]}")
+# the classical mode where the static prior's runs above have not scored it, the shipped settings
+# (power_4, as bundled) where the power sweep has not
+for s in val_traffic_2 val_traffic_3 val_traffic_4 val_static_2 val_static_3 val_static_4 "${NEW[@]}"; do
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
-  "$D3LVO" run "$OUT/data/$s" --backend onnxruntime --threads 1 --out "$OUT/eval/bundled_$s.txt" --overwrite
+done
+for s in "${NEW[@]}"; do
+  "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_4" --backend onnxruntime --threads 1 \
+    --out "$OUT/eval/power_4_$s.txt" --overwrite
 done
 for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
   "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$set" --set "$set"
