@@ -22,8 +22,10 @@ from onnx import TensorProto, helper, numpy_helper
 from torch import nn
 
 from models.point_solver import LOOP_DOMAIN, LOOP_OP, SolverSettings, gn_steps
+from models.sampling import inside_lattice
 
-BODY_INPUTS = ("P", "active", "Xh", "ref", "stack", "G", "f", "weight", "w_ok", "median_mask")
+BODY_INPUTS = ("P", "active", "Xh", "ref", "stack", "G", "f", "weight", "w_ok", "median_mask", "half", "last_cell",
+               "row_map", "offsets")
 CARRIED = 2  # P and active are carried from block to block; the rest are read from the outer graph
 
 
@@ -45,7 +47,8 @@ def block_graph(s: SolverSettings, capacity: int, opset: int, dynamic_batch: boo
     args = (torch.eye(3, 4).expand(b, 3, 4), torch.ones(b, 1, 1),
             torch.cat([torch.rand(b, 2, n, generator=g), 5 + torch.rand(b, 1, n, generator=g), torch.ones(b, 1, n)], 1),
             torch.rand(b, 1, n, generator=g), torch.rand(b, 3, h, w, generator=g), torch.eye(3).expand(b, 3, 3) * 0.1,
-            torch.full((b, 2, 1), 50.0), torch.ones(b, 1, n), torch.ones(b, 1, n), torch.ones(b, 1, n))
+            torch.full((b, 2, 1), 50.0), torch.ones(b, 1, n), torch.ones(b, 1, n), torch.ones(b, 1, n),
+            *inside_lattice(torch.zeros(b, 3, h, w)))
     dynamic = {"stack": {2: "image_height", 3: "image_width"}}
     if dynamic_batch:
         for name in BODY_INPUTS + ("P_next", "active_next"):
@@ -106,6 +109,30 @@ def has_placeholders(model: onnx.ModelProto) -> bool:
     return any(_is_placeholder(n) for n in model.graph.node)
 
 
+def _read_by(nodes) -> set[str]:
+    """Every value the nodes read, their Loop bodies' outer-scope reads included."""
+    names = set()
+    for n in nodes:
+        names.update(n.input)
+        for a in n.attribute:
+            if a.type == onnx.AttributeProto.GRAPH:
+                names |= _read_by(a.g.node) | {o.name for o in a.g.output}
+    return names
+
+
+def _used(nodes: list, graph: onnx.GraphProto) -> list:
+    """The nodes that the graph's outputs depend on: a Loop reads from the outer graph only what
+    its body uses, so the sampling lattice that OpenVINO's graph (GridSample) does not use is
+    dropped here rather than left to each engine."""
+    needed = {o.name for o in graph.output}
+    kept = []
+    for n in reversed(nodes):
+        if any(o in needed for o in n.output):
+            kept.append(n)
+            needed |= _read_by([n])
+    return kept[::-1]
+
+
 def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onnx.ModelProto:
     """Every placeholder node -> Loop(max trips, true, P, active) over a block of its settings'
     steps; drops the placeholder's opset import, so that the graph holds standard ops only."""
@@ -133,7 +160,7 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
                   helper.make_node("Loop", [prefix + "trips", prefix + "start", *node.input[:CARRIED]],
                                    list(node.output), name=prefix + "Loop", body=body)]
     del model.graph.node[:]
-    model.graph.node.extend(nodes)
+    model.graph.node.extend(_used(nodes, model.graph))
     keep = [o for o in model.opset_import if o.domain != LOOP_DOMAIN]
     del model.opset_import[:]
     model.opset_import.extend(keep)

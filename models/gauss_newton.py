@@ -2,8 +2,9 @@
 
 Written with elementwise ops, MatMul, GridSample and Where only, so that the flow+pose stage
 exports to standard ONNX: the 6x6 normal equations are solved by Gauss-Jordan elimination on
-whole matrices (`Inverse` is not in ONNX's default domain), the exponential map by Rodrigues'
-formula as its Taylor series for a solver step's small angles. Few ops per step: an exported
+whole matrices (`Inverse` is not in ONNX's default domain; `cramer_solve` where the engine runs
+Det), the exponential map by Rodrigues' formula as its Taylor series for a solver step's small
+angles. Few ops per step: an exported
 graph's time goes to per-op overhead, not arithmetic (docs/performance.md).
 
 Convention: M maps points of frame t-1 into frame t (X_t = R X_{t-1} + t), i.e. the inverse
@@ -79,6 +80,30 @@ def scaled_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
     pad_one, last_one = eye_like(n, Hb, n + 1), literal([0.0] * n + [1.0], Hb)  # (d^T, 1) = d^T pad_one + last_one
     Hs = torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
     return d * gauss_jordan(Hs)
+
+
+def _cramer_columns(n: int) -> list:
+    """(n+1, n+1, n) selections: [H | b] @ sel[0] = H, [H | b] @ sel[i] = H with column i-1 := b."""
+    sel = []
+    for i in range(n + 1):
+        rows = [[float(r == c) for c in range(n)] for r in range(n)] + [[0.0] * n]
+        if i:
+            for r in range(n + 1):
+                rows[r][i - 1] = float(r == n)
+        sel.append(rows)
+    return sel
+
+
+def cramer_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
+    """`scaled_solve` by Cramer's rule: the n + 1 determinants of one batched Det op (ONNX Det,
+    which onnxruntime runs and OpenVINO does not convert) in place of elimination's 7 ops per
+    pivot; on the same unit-diagonal system, so that H = 0 still solves I x = 0."""
+    n = Hb.shape[-2]
+    d = torch.pow(damped, -0.5)
+    pad_one, last_one = eye_like(n, Hb, n + 1), literal([0.0] * n + [1.0], Hb)
+    Hs = torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
+    dets = torch.linalg.det(Hs.unsqueeze(1) @ literal(_cramer_columns(n), Hb))  # (B, n+1)
+    return d * (dets[:, 1:] / dets[:, :1]).unsqueeze(-1)
 
 
 def so3_exp_small(omega: torch.Tensor) -> torch.Tensor:

@@ -11,11 +11,12 @@ weight per point, its confidence; with every confidence 1 this is exactly the cl
 `d3lvo_deploy.direct` (numpy, written separately; a test holds them together).
 
 Standard ONNX ops only: the image pyramids are inputs (`image_pyramids`; cv2 at run time),
-GridSample does the bilinear samples (Gathers in onnxruntime's graph, `sampling`), TopK the
-median, MatMul the normal equations and Gauss-Jordan elimination the 6x6 solve, Loop the blocks
-of steps (`export/solver_loop.py`). A
-step is ~140 graph ops: its time is per-op overhead, not arithmetic, so `gn_steps` is written for
-few ops (docs/performance.md).
+GridSample does the bilinear samples, TopK the median, MatMul the normal equations and Gauss-Jordan
+elimination the 6x6 solve, Loop the blocks of steps (`export/solver_loop.py`); onnxruntime's graph
+samples with one GatherElements (`sampling`) and solves by Cramer's rule (one Det op, which
+OpenVINO does not convert). A step is 134 graph ops (116 in onnxruntime's), each a few
+microseconds whatever its size, so `gn_steps` is written for few ops and few passes over the
+points (`python -m export.solver_bench`, docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
 
@@ -28,7 +29,7 @@ import torch.nn.functional as F
 
 from . import gauss_newton as gn
 from . import sampling
-from .gauss_newton import DIFF, ROLL, ROLL_BACK, grid_intrinsics, literal, scaled_solve, so3_exp_small
+from .gauss_newton import DIFF, ROLL, ROLL_BACK, cramer_solve, grid_intrinsics, literal, scaled_solve, so3_exp_small
 from .layers import full_precision
 from .sampling import image_size
 
@@ -105,12 +106,15 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
 
 def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
              G: torch.Tensor, f: torch.Tensor, weight: torch.Tensor, w_ok: torch.Tensor, median_mask: torch.Tensor,
+             half: torch.Tensor, last_cell: torch.Tensor, row_map: torch.Tensor, offsets: torch.Tensor,
              steps: int, s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
     """`steps` damped Gauss-Newton steps of `align_level` from the pose P (B,3,4) on the points Xh
     (B,4,N), the first one at a multiple of `s.scale_every` (it re-estimates the Huber threshold).
     active (B,1,1) is 1 until a step falls below `s.stop_step`; a stopped level's steps are 0.
-    Also the body of the exported graph's Loop (`export/solver_loop.py`), so all its inputs are
-    tensors of the outer graph."""
+    half .. offsets: `sampling.inside_lattice` of stack. Also the body of the exported
+    graph's Loop (`export/solver_loop.py`), so all its inputs are tensors of the outer graph.
+    onnxruntime's graph (`sampling.gathering`) samples with Gathers and solves the 6x6 system by
+    Cramer's rule (one Det op); OpenVINO's by GridSample and Gauss-Jordan elimination (no Det)."""
     roll, roll_back, diff = literal(ROLL, Xh), literal(ROLL_BACK, Xh), literal(DIFF, Xh)
     diagonal = literal([[8 * i] for i in range(6)], Xh).long()  # H's diagonal in [H | g] flattened
     to_last = literal([[0.0, 0.0, 0.0, 1.0]], Xh)  # rho (B,3,1) -> (B,3,4) as the translation column
@@ -123,7 +127,7 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         ok = ((grid.abs().amax(1, keepdim=True) <= 1.0) & (z > 0.1)).to(dtype) * w_ok
         active = active * (ok.sum(-1, keepdim=True) >= 12).to(dtype)  # too few: stop, as the tracker
         if sampling.gathering():  # outside the image `ok` is 0
-            smp = sampling.bilinear_inside(stack, grid)
+            smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))
         else:
             smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
                                 align_corners=True)[:, :, 0]  # (B,3,N)
@@ -137,7 +141,8 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # damped diagonal (1 + damping) diag(H) + 1e-12; a stopped level (no points left, say an
         # empty scan) solves I xi = 0
-        xi = scaled_solve(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
+        solve = cramer_solve if sampling.gathering() else scaled_solve
+        xi = solve(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
         P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
         active = active * (xi.abs().amax(1, keepdim=True) >= s.stop_step).to(dtype)
     return P, active
@@ -152,16 +157,18 @@ class _GaussNewtonLoop(torch.autograd.Function):
     has stopped (the unrolled graph would compute the same zero steps to the end)."""
 
     @staticmethod
-    def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings,
-                capacity: int, batch: int):
+    def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
+                offsets, trips: int, s: SolverSettings, capacity: int, batch: int):
         for _ in range(trips):
-            P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, s.scale_every, s)
+            P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell,
+                                 row_map, offsets, s.scale_every, s)
         return P, active
 
     @staticmethod
-    def symbolic(g, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, trips: int, s: SolverSettings,
-                 capacity: int, batch: int):
+    def symbolic(g, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
+                 offsets, trips: int, s: SolverSettings, capacity: int, batch: int):
         out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
+                   half, last_cell, row_map, offsets,
                    trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping,
                    capacity_i=capacity, batch_i=batch, outputs=2)
         for o, like in zip(out, (P, active)):
@@ -188,7 +195,7 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
     P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
     ctx = (Xh, ref.unsqueeze(1), stack, G, f, weight.unsqueeze(1), (weight > 0).to(dtype).unsqueeze(1),
-           median_mask.unsqueeze(1))
+           median_mask.unsqueeze(1), *sampling.inside_lattice(stack))
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     trips, rest = divmod(iterations, s.scale_every)
     if torch.onnx.is_in_onnx_export() and trips > 1:

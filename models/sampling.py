@@ -70,16 +70,28 @@ def bilinear(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return (v * _corner_weights(p - p0).unsqueeze(-1)).sum(1).transpose(1, 2)
 
 
-def bilinear_inside(x: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+def inside_lattice(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What `bilinear_inside` needs of x's size (B,C,h,w), computed once where x is sampled many
+    times (the Gauss-Newton steps): half the last pixel position (1,2,1), the last cell's corner
+    (1,2,1), the flat-index map (1, w) (1,1,2), and each channel's four corners' offsets in x
+    flattened (1,C,4,1), int32."""
+    size = _size(x, x.dtype)  # (1,2,1): w, h
+    w = size[:, :1]
+    corners = torch.cat([torch.zeros_like(w), torch.ones_like(w), w, w + 1.0], 1)  # (1,4,1)
+    channels = torch.ones_like(x[:1, :, :1, 0]).cumsum(1) - 1.0  # (1,C,1): 0 .. C-1
+    offsets = corners.unsqueeze(1) + (channels * (w * size[:, 1:])).unsqueeze(-1)
+    # int32: a narrower index than int64 is cheaper to build and to gather with (positions below 2^24)
+    return (size - 1.0) * 0.5, size - 2.0, torch.cat([torch.ones_like(w), w], 2), offsets.to(torch.int32)
+
+
+def bilinear_inside(x: torch.Tensor, grid: torch.Tensor, lattice: tuple | None = None) -> torch.Tensor:
     """x (B,C,h,w) at GridSample coordinates grid (B,2,N) -> (B,C,N) for positions inside the
-    image ([-1, 1]); outside, finite values the caller masks. For few channels: GatherElements
-    on x as it is (no copy of x, which the Gauss-Newton steps sample fifteen times)."""
-    b, c = x.shape[:2]
-    last = _size(x, grid.dtype) - 1.0
-    p = torch.minimum(((grid + 1.0) * 0.5 * last).clamp(min=0.0), last)
-    p0 = torch.minimum(torch.floor(p), last - 1.0)
-    first = torch.cat([torch.ones_like(last[:, :1]), last[:, :1] + 1.0], 2) @ p0  # (B,1,N)
-    corners = first + torch.cat([torch.zeros_like(last[:, :1]), torch.ones_like(last[:, :1]), last[:, :1] + 1.0,
-                                 last[:, :1] + 2.0], 1)
-    v = torch.gather(x.flatten(2), 2, corners.long().reshape(b, 1, -1).expand(b, c, -1)).reshape(b, c, 4, -1)
+    image ([-1, 1]); outside, finite values the caller masks. For few channels: one
+    GatherElements on x as it is (no copy of x, which the Gauss-Newton steps sample fifteen
+    times); `lattice` (`inside_lattice` of x) saves the ops that read x's size at every call."""
+    half, last_cell, row_map, offsets = inside_lattice(x) if lattice is None else lattice
+    p = (grid.clamp(-1.0, 1.0) + 1.0) * half
+    p0 = torch.minimum(torch.floor(p), last_cell)
+    index = (row_map @ p0).unsqueeze(1).to(torch.int32) + offsets  # (B,C,4,N) in x.flatten(1)
+    v = torch.gather(x.flatten(1), 1, index.flatten(1)).view_as(index)
     return (v * _corner_weights(p - p0).unsqueeze(1)).sum(2)

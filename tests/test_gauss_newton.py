@@ -16,9 +16,11 @@ def _rotation(w: torch.Tensor) -> torch.Tensor:
     return torch.linalg.matrix_exp(torch.from_numpy(skew(w[0].numpy())))[None]
 
 
-def test_scaled_solve_matches_linalg_on_normal_equations_of_mixed_scale():
+@pytest.mark.parametrize("solve", [gn.scaled_solve, gn.cramer_solve], ids=["gauss_jordan", "cramer"])
+def test_scaled_solve_matches_linalg_on_normal_equations_of_mixed_scale(solve):
     """A solver step's 6x6 system: translation and rotation columns of very different scale
-    (pixels per metre against pixels per radian), solved in float32 as the graph runs it."""
+    (pixels per metre against pixels per radian), solved in float32 as the graph runs it; by
+    elimination (OpenVINO's graph) and by Cramer's rule (onnxruntime's)."""
     g = torch.Generator().manual_seed(0)
     J = torch.randn(5, 200, 6, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.1, 300.0, 300.0, 50.0],
                                                                                    dtype=torch.float64)
@@ -27,11 +29,11 @@ def test_scaled_solve_matches_linalg_on_normal_equations_of_mixed_scale():
     diag = torch.diagonal(H, dim1=1, dim2=2)
     ref = torch.linalg.solve(H + torch.diag_embed(0.5 * diag), b)  # Levenberg-Marquardt, lambda 0.5
     damped = (1.5 * diag).unsqueeze(-1)
-    np.testing.assert_allclose(gn.scaled_solve(torch.cat([H, b], -1), damped), ref, rtol=1e-9, atol=1e-12)
-    x32 = gn.scaled_solve(torch.cat([H, b], -1).float(), damped.float()).double()
+    np.testing.assert_allclose(solve(torch.cat([H, b], -1), damped), ref, rtol=1e-9, atol=1e-12)
+    x32 = solve(torch.cat([H, b], -1).float(), damped.float()).double()
     assert float(((x32 - ref).abs() / ref.abs().clamp(min=1e-6)).max()) < 1e-3
     # no points: H = 0 and b = 0 solve to 0, not NaN
-    assert torch.equal(gn.scaled_solve(torch.zeros(1, 6, 7), torch.full((1, 6, 1), 1e-12)), torch.zeros(1, 6, 1))
+    assert torch.equal(solve(torch.zeros(1, 6, 7), torch.full((1, 6, 1), 1e-12)), torch.zeros(1, 6, 1))
 
 
 def test_so3_exp_small_matches_so3_exp_within_a_steps_range():

@@ -14,7 +14,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine, load_manifest
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel
 from export.onnx_export import all_nodes
-from models.sampling import bilinear, bilinear_inside, gathered, gathering
+from models.sampling import bilinear, bilinear_inside, gathered, gathering, inside_lattice
 
 
 def _grid_sample(x, uv):
@@ -45,6 +45,8 @@ def test_matches_grid_sample_batched():
     ref = F.grid_sample(x, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
                         align_corners=True)[:, :, 0]
     assert (bilinear_inside(x, grid) - ref).abs().max() < 1e-6
+    # with its lattice computed once, as the Gauss-Newton steps call it
+    assert (bilinear_inside(x, grid, inside_lattice(x)) - ref).abs().max() < 1e-6
 
 
 def test_gathered_is_scoped():
