@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import typer
@@ -103,6 +104,9 @@ def bench_command(
     profile: Path | None = typer.Option(None, "--profile", help="Write onnxruntime profiles here and list the top ops."),
     precision: str = typer.Option("fp32", "--precision", help="With --ckpt or --height/--width: export at fp32 | fp16 | "
                                   "int8 first (INT8 calibrated as `d3lvo export` does). Torch stays FP32."),
+    against: Path | None = typer.Option(None, "--against", help="Another exported folder of the same size, timed on "
+                                        "every engine taking turns with the model: two exports compared under the "
+                                        "same drift of the machine's speed."),
 ) -> None:
     """Per stage and engine: median/p90/max latency, GFLOP/s against this CPU's GEMM peak, frames/s,
     peak RSS, and the speed-up over torch eager (and torch.compile); the CPU and its vector
@@ -147,6 +151,7 @@ def bench_command(
         from d3lvo_deploy.extras import require
 
         require("torch", "onnx", what="d3lvo bench with --ckpt, --height/--width or --torch-compile")
+    other = None if against is None else load_manifest(against)  # a clear error for a folder that is no export
     if seq_dir is None and find_real_frames() is None:
         from d3lvo_deploy.extras import require
 
@@ -185,6 +190,9 @@ def bench_command(
 
             onnx = bundled_model_dir()
         manifest = load_manifest(onnx)
+        if other is not None and (other["input"]["width"], other["input"]["height"]) != (
+                manifest["input"]["width"], manifest["input"]["height"]):
+            raise D3LVOInputError(against, "--against needs an export of the model's input size")
         gflops = _stage_gflops(onnx, manifest)
         seq = KittiSequence.open(seq_dir or _bench_frames(tmp))
         with console.status("measuring the GEMM peak"):
@@ -197,6 +205,9 @@ def bench_command(
         frames = bench_frames(seq)
         with console.status(f"loading {', '.join(engines)}"):
             streams = {b: EngineStream(onnx, seq, sc, frames) for b, sc in zip(engines, scs)}
+            if against is not None:  # no profile of the other folder: the profile lists the model's ops
+                streams.update({f"{b} --against": EngineStream(against, seq, replace(sc, profile_dir=None), frames)
+                                for b, sc in zip(engines, scs)})
             warm_up(list(streams.values()), ENGINE_WARMUP)
         rss = peak_rss_mb()  # before torch is imported: what a vehicle process needs
         torch_streams = _torch_streams(manifest, seq, threads, torch_compare, torch_compile, frames)
@@ -241,10 +252,18 @@ def bench_command(
         res["best_over_torch_compile"] = network_ms(compiled_t) / network_ms(timed[best])
     if top_ops is not None:
         res["top_ops_ms"] = top_ops
+    if against is not None:
+        res["against"] = {"model": str(against),
+                          "backends": {b: {"stages_ms": times[f"{b} --against"].summary()} for b in engines}}
     if as_json:
         typer.echo(json.dumps(res, indent=2))
         return
     _print_report(res, timed, torch_t, compiled_t, top_ops)
+    for b, a in res.get("against", {}).get("backends", {}).items():
+        m, o = timed[b], a["stages_ms"]
+        console.print(f"{b}, taking turns with --against {against}: total median {m['total']['median']:.1f} against "
+                      f"{o['total']['median']:.1f} ms, flow+pose {m['flowpose']['median']:.1f} against "
+                      f"{o['flowpose']['median']:.1f} ms")
 
 
 def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict | None, top_ops) -> None:

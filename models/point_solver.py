@@ -63,14 +63,18 @@ def with_gradients(g: torch.Tensor) -> torch.Tensor:
     return torch.cat([g, gx, gy], 1)
 
 
-def sample_at(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+def sample_at(img: torch.Tensor, uv: torch.Tensor, inside: bool = False) -> torch.Tensor:
     """Bilinear (B,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w as
-    `image_size`."""
-    if sampling.gathering():
+    `image_size`. inside: the caller masks positions outside the image (or has none), so
+    onnxruntime's graph gathers from the image as it is (`sampling.bilinear_inside`) instead of
+    padding and transposing all of it for a few thousand samples."""
+    if sampling.gathering() and not inside:
         return sampling.bilinear(img, uv.transpose(1, 2))
     size = image_size(img, uv.dtype)  # (h, w)
     gx = 2.0 * uv[..., 0] / (size[1] - 1) - 1.0
     gy = 2.0 * uv[..., 1] / (size[0] - 1) - 1.0
+    if sampling.gathering():
+        return sampling.bilinear_inside(img, torch.stack([gx, gy], 1))
     grid = torch.stack([gx, gy], -1).unsqueeze(1)
     return F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
 
@@ -220,7 +224,7 @@ def residuals_at(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.T
     uv, _, front = project(X @ R.transpose(1, 2) + t, K)
     h, w = grey2.shape[-2:]
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    return sample_at(grey2, uv)[:, 0] - ref, front * inside.to(ref.dtype)
+    return sample_at(grey2, uv, inside=True)[:, 0] - ref, front * inside.to(ref.dtype)
 
 
 def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
@@ -246,7 +250,7 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     MSAC cost, on full-resolution grey images (B,1,H,W) of both frames; weight (B,N) as `solve`'s.
     Something that moves pulls the classical pose off the static points, and they say so; a
     confidence that doubts static points (a false detection) leaves them explained by both."""
-    ref = sample_at(grey1, project(points, K)[0])[:, 0]
+    ref = sample_at(grey1, project(points, K)[0], inside=True)[:, 0]  # frame t-1's own points
     M, M_c = gn.invert(A), gn.invert(A_classical)
     r, seen = residuals_at(M[:, :3, :3], M[:, :3, 3:].transpose(1, 2), points, ref, grey2, K)
     r_c, seen_c = residuals_at(M_c[:, :3, :3], M_c[:, :3, 3:].transpose(1, 2), points, ref, grey2, K)
@@ -281,7 +285,8 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
           init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None,
           mask: torch.Tensor | None = None):
     """grey1, stack2 (`image_pyramids`): frame t-1's grey (B,1,h,w) and frame t's grey and
-    derivatives (B,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution;
+    derivatives (B,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution
+    (grey1 may hold the first b pairs only where the batch is those b pairs solved B / b times);
     points (B,N,3) frame t-1's points in camera coordinates; weight (B,N): the mask times the
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
@@ -296,7 +301,12 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     out = []
     for i, lvl in enumerate(reversed(range(len(s.iterations)))):
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
-        ref = sample_at(grey1[lvl], project(points, Kl)[0])[:, 0]
+        # frame t-1's points land inside its full-resolution image (a pyrDown level's last column
+        # can be half a pixel short of them: zeros beyond, as the numpy tracker's remap); with
+        # grey1 for fewer pairs than the batch (the same pairs solved again) sampled once and repeated
+        g = grey1[lvl].shape[0]
+        ref = sample_at(grey1[lvl], project(points[:g], Kl[:g])[0], inside=lvl == 0)[:, 0]
+        ref = ref.repeat(points.shape[0] // g, 1) if g != points.shape[0] else ref
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         if lvl == 0 and s.refine > 0:
             mask = (weight > 0).to(weight.dtype) if mask is None else mask

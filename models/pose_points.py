@@ -136,7 +136,7 @@ class PointPose(nn.Module):
             # (`consensus_gain`)
             two = lambda x: torch.cat([x, x], 0)  # noqa: E731
             b = weight.shape[0]
-            both = solve([two(g) for g in grey1], [two(g) for g in stack2], two(points), torch.cat([weight, mask], 0),
+            both = solve(grey1, [two(g) for g in stack2], two(points), torch.cat([weight, mask], 0),
                          two(K_image), two(init), self.settings, mask=two(mask))
             levels, classical = [L[:b] for L in both], both[-1][b:]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], points, weight, K_image)

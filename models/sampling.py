@@ -78,7 +78,7 @@ def inside_lattice(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     size = _size(x, x.dtype)  # (1,2,1): w, h
     w = size[:, :1]
     corners = torch.cat([torch.zeros_like(w), torch.ones_like(w), w, w + 1.0], 1)  # (1,4,1)
-    channels = torch.ones_like(x[:1, :, :1, 0]).cumsum(1) - 1.0  # (1,C,1): 0 .. C-1
+    channels = torch.arange(x.shape[1], dtype=x.dtype, device=x.device).view(1, -1, 1)  # no slice of x: a copy
     offsets = corners.unsqueeze(1) + (channels * (w * size[:, 1:])).unsqueeze(-1)
     # int32: a narrower index than int64 is cheaper to build and to gather with (positions below 2^24)
     return (size - 1.0) * 0.5, size - 2.0, torch.cat([torch.ones_like(w), w], 2), offsets.to(torch.int32)

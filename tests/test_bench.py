@@ -75,6 +75,23 @@ def test_cli_bench_json(small_model, small_synth):
     assert set(d["stages_ms"]) >= {"project", "completion", "encoder", "flowpose", "total"}
 
 
+def test_cli_bench_against_another_folder_times_both_in_turns(small_model, small_synth, tmp_path):
+    """--against times a second export on the same engine and frames, taking turns with the model;
+    a folder that is not an export is refused by name."""
+    ck, onnx_dir = small_model
+    args = ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "2", "--threads", "1",
+            "--no-torch", "--backend", "onnxruntime"]
+    r = runner.invoke(app, args + ["--json", "--against", str(onnx_dir)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    other = d["against"]["backends"]["onnxruntime"]["stages_ms"]
+    assert d["against"]["model"] == str(onnx_dir)
+    assert set(other) == set(d["stages_ms"])
+    assert other["total"]["min"] <= other["total"]["median"] <= other["total"]["max"]
+    r = runner.invoke(app, args + ["--against", str(tmp_path)])
+    assert r.exit_code != 0 and str(tmp_path) in r.output and "Traceback" not in r.output
+
+
 def test_cli_bench_from_checkpoint(small_model, small_synth):
     ck, _ = small_model
     r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch",
