@@ -29,8 +29,10 @@ import onnx
 import onnxruntime as ort
 import torch
 
+from d3lvo_deploy.points import bilinear
 from export.solver_loop import BODY_INPUTS, block_graph
 from models import point_solver, sampling
+from models.gauss_newton import grid_intrinsics
 from models.point_solver import SolverSettings
 
 LAYOUTS = {"gather": "GatherElements + Cramer (Det)", "gather_gj": "GatherElements + Gauss-Jordan",
@@ -38,27 +40,26 @@ LAYOUTS = {"gather": "GatherElements + Cramer (Det)", "gather_gj": "GatherElemen
 
 
 def block_feeds(height: int, width: int, points: int, batch: int = 2, seed: int = 0) -> dict[str, np.ndarray]:
-    """A block's inputs: a smooth random texture and its derivatives, points 5-30 m ahead in view."""
+    """A block's inputs: a smooth random texture and its derivatives (`with_gradients`, as the
+    solver takes them), points 5-30 m ahead in view, 0.3 m of forward motion to recover."""
     rng = np.random.default_rng(seed)
     f = 0.58 * width
     grey = np.stack([cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), 3)[None]
                      for _ in range(batch)])
-    stack = np.concatenate([grey, np.gradient(grey, axis=3), np.gradient(grey, axis=2)], 1).astype(np.float32)
     z = rng.uniform(5.0, 30.0, (batch, 1, points))
     u, v = rng.uniform(0, width - 1, (batch, 1, points)), rng.uniform(0, height - 1, (batch, 1, points))
     X = np.concatenate([(u - width / 2) * z / f, (v - height / 2) * z / f, z, np.ones_like(z)], 1).astype(np.float32)
-    G = np.zeros((batch, 3, 3), np.float32)
-    G[:, 0, 0], G[:, 1, 1] = 2 * f / (width - 1), 2 * f / (height - 1)
-    G[:, 0, 2], G[:, 1, 2], G[:, 2, 2] = width / (width - 1) - 1, height / (height - 1) - 1, 1
+    K = torch.tensor([[f, f, width / 2, height / 2]] * batch)
     P = np.tile(np.eye(3, 4, dtype=np.float32), (batch, 1, 1))
-    P[:, 2, 3] = -0.3  # 0.3 m of forward motion to recover
+    P[:, 2, 3] = -0.3
     ones = np.ones((batch, 1, points), np.float32)
-    ref = np.stack([cv2.remap(grey[b, 0], u[b].astype(np.float32), v[b].astype(np.float32), cv2.INTER_LINEAR)
-                    for b in range(batch)]).astype(np.float32)  # (batch, 1, points)
-    feeds = dict(P=P, active=np.ones((batch, 1, 1), np.float32), Xh=X, ref=ref, stack=stack, G=G,
-                 f=np.full((batch, 2, 1), f, np.float32), weight=ones, w_ok=ones, median_mask=ones)
-    lattice = sampling.inside_lattice(torch.from_numpy(stack))
-    feeds.update({k: t.numpy() for k, t in zip(BODY_INPUTS[-4:], lattice)})
+    ref = np.stack([bilinear(grey[b, 0], np.stack([u[b, 0], v[b, 0]], 1))[None] for b in range(batch)])
+    stack = point_solver.with_gradients(torch.from_numpy(grey))
+    G = grid_intrinsics(K, torch.tensor([width, height], dtype=torch.float32))
+    feeds = dict(P=P, active=np.ones((batch, 1, 1), np.float32), Xh=X, ref=ref.astype(np.float32),
+                 stack=stack.numpy(), G=G.numpy(), f=np.full((batch, 2, 1), f, np.float32), weight=ones, w_ok=ones,
+                 median_mask=ones)
+    feeds.update({k: t.numpy() for k, t in zip(BODY_INPUTS[-4:], sampling.inside_lattice(stack))})
     return feeds
 
 

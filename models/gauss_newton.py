@@ -69,16 +69,23 @@ def gauss_jordan(Ab: torch.Tensor) -> torch.Tensor:
     return Ab[:, :, n:]
 
 
-def scaled_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
-    """x (B,n,1) solving H' x = b for [H | b] (B,n,n+1), H symmetric positive definite, where H' is H
-    with its diagonal replaced by `damped` (B,n,1). Scaled to a unit diagonal first: translation and
-    rotation columns differ by orders of magnitude, which float32 elimination without pivoting
-    would not survive. The scaled diagonal is exactly 1 and is written as 1, so that a system
-    without points (H = 0) solves I x = 0 instead of 0/0."""
+def unit_diagonal(Hb: torch.Tensor, damped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """[H | b] (B,n,n+1) with H's diagonal replaced by `damped` (B,n,1) -> (d, [D H D | D b]) with
+    D = diag(d) = damped^-1/2: the unit-diagonal system whose solution y gives x = d y. Its
+    diagonal is written as exactly 1, so that a system without points (H = 0) solves I y = 0
+    instead of 0/0."""
     n = Hb.shape[-2]
     d = torch.pow(damped, -0.5)
     pad_one, last_one = eye_like(n, Hb, n + 1), literal([0.0] * n + [1.0], Hb)  # (d^T, 1) = d^T pad_one + last_one
-    Hs = torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
+    return d, torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
+
+
+def scaled_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
+    """x (B,n,1) solving H' x = b for [H | b] (B,n,n+1), H symmetric positive definite, where H' is H
+    with its diagonal replaced by `damped` (B,n,1). Scaled to a unit diagonal first
+    (`unit_diagonal`): translation and rotation columns differ by orders of magnitude, which
+    float32 elimination without pivoting would not survive."""
+    d, Hs = unit_diagonal(Hb, damped)
     return d * gauss_jordan(Hs)
 
 
@@ -97,12 +104,9 @@ def _cramer_columns(n: int) -> list:
 def cramer_solve(Hb: torch.Tensor, damped: torch.Tensor) -> torch.Tensor:
     """`scaled_solve` by Cramer's rule: the n + 1 determinants of one batched Det op (ONNX Det,
     which onnxruntime runs and OpenVINO does not convert) in place of elimination's 7 ops per
-    pivot; on the same unit-diagonal system, so that H = 0 still solves I x = 0."""
-    n = Hb.shape[-2]
-    d = torch.pow(damped, -0.5)
-    pad_one, last_one = eye_like(n, Hb, n + 1), literal([0.0] * n + [1.0], Hb)
-    Hs = torch.where(pad_one > 0, literal(1.0, Hb), Hb * (d * (d.transpose(1, 2) @ pad_one + last_one)))
-    dets = torch.linalg.det(Hs.unsqueeze(1) @ literal(_cramer_columns(n), Hb))  # (B, n+1)
+    pivot; on the same unit-diagonal system (`unit_diagonal`), so that H = 0 still solves I x = 0."""
+    d, Hs = unit_diagonal(Hb, damped)
+    dets = torch.linalg.det(Hs.unsqueeze(1) @ literal(_cramer_columns(Hb.shape[-2]), Hb))  # (B, n+1)
     return d * (dets[:, 1:] / dets[:, :1]).unsqueeze(-1)
 
 
