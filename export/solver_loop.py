@@ -30,33 +30,36 @@ CARRIED = 2  # P and active are carried from block to block; the rest are read f
 
 
 class _Block(nn.Module):
-    def __init__(self, s: SolverSettings):
+    def __init__(self, s: SolverSettings, layout: tuple[int, int, int]):
         super().__init__()
-        self.s = s
+        self.s, self.layout = s, layout
 
     def forward(self, *tensors):
-        return gn_steps(*tensors, self.s.scale_every, self.s)
+        return gn_steps(*tensors, self.s.scale_every, self.s, self.layout)
 
 
-def block_graph(s: SolverSettings, capacity: int, opset: int, dynamic_batch: bool, batch: int = 1) -> onnx.GraphProto:
+def block_graph(s: SolverSettings, capacity: int, opset: int, dynamic_batch: bool, batch: int = 1,
+                images: int | None = None) -> onnx.GraphProto:
     """One block of `s.scale_every` steps as a graph with inputs BODY_INPUTS and outputs (P, active)
-    for `batch` pairs (the placeholder's; dynamic with dynamic_batch); the camera image's size is
-    dynamic, as in the flow+pose graph."""
+    for `batch` solves of `images` pairs (the placeholder's, default `batch`: each solve its own
+    image stack; dynamic with dynamic_batch); the camera image's size is dynamic, as in the
+    flow+pose graph."""
     g = torch.Generator().manual_seed(0)
     n, h, w, b = capacity, 40, 60, batch
+    m = batch if images is None else images
     args = (torch.eye(3, 4).expand(b, 3, 4), torch.ones(b, 1, 1),
             torch.cat([torch.rand(b, 2, n, generator=g), 5 + torch.rand(b, 1, n, generator=g), torch.ones(b, 1, n)], 1),
-            torch.rand(b, 1, n, generator=g), torch.rand(b, 3, h, w, generator=g), torch.eye(3).expand(b, 3, 3) * 0.1,
+            torch.rand(b, 1, n, generator=g), torch.rand(m, 3, h, w, generator=g), torch.eye(3).expand(b, 3, 3) * 0.1,
             torch.full((b, 2, 1), 50.0), torch.ones(b, 1, n), torch.ones(b, 1, n), torch.ones(b, 1, n),
-            *inside_lattice(torch.zeros(b, 3, h, w)))
+            *inside_lattice(torch.zeros(m, 3, h, w), torch.zeros(b)))
     dynamic = {"stack": {2: "image_height", 3: "image_width"}}
     if dynamic_batch:
         for name in BODY_INPUTS + ("P_next", "active_next"):
-            dynamic.setdefault(name, {})[0] = "batch"
+            dynamic.setdefault(name, {})[0] = "pairs" if name == "stack" and m != b else "batch"
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         path = Path(tmp) / "block.onnx"
-        torch.onnx.export(_Block(s).eval(), args, str(path), input_names=list(BODY_INPUTS),
+        torch.onnx.export(_Block(s, (b // m, 3, n)).eval(), args, str(path), input_names=list(BODY_INPUTS),
                           output_names=["P_next", "active_next"], opset_version=opset, dynamo=False,
                           do_constant_folding=True, dynamic_axes=dynamic)
         return onnx.load(str(path)).graph
@@ -145,10 +148,11 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
             continue
         a = {x.name: helper.get_attribute_value(x) for x in node.attribute}
         batch = a.get("batch", 1)
-        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch)
+        images = a.get("images", batch)
+        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images)
         if key not in blocks:
             s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"])
-            blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch)
+            blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch, images)
         trips = a["trips"]
         prefix = f"gn_loop{loops}/"
         loops += 1

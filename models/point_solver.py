@@ -111,11 +111,14 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
 def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
              G: torch.Tensor, f: torch.Tensor, weight: torch.Tensor, w_ok: torch.Tensor, median_mask: torch.Tensor,
              half: torch.Tensor, last_cell: torch.Tensor, row_map: torch.Tensor, offsets: torch.Tensor,
-             steps: int, s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
+             steps: int, s: SolverSettings, layout: tuple[int, int, int] | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor]:
     """`steps` damped Gauss-Newton steps of `align_level` from the pose P (B,3,4) on the points Xh
     (B,4,N), the first one at a multiple of `s.scale_every` (it re-estimates the Huber threshold).
     active (B,1,1) is 1 until a step falls below `s.stop_step`; a stopped level's steps are 0.
-    half .. offsets: `sampling.inside_lattice` of stack. Also the body of the exported
+    half .. offsets: `sampling.inside_lattice(stack, Xh)`; stack may hold one image per k rows
+    (layout: `sampling.grid_sample_shared`'s (k, channels, points), which an export passes as
+    constants). Also the body of the exported
     graph's Loop (`export/solver_loop.py`), so all its inputs are tensors of the outer graph.
     onnxruntime's graph (`sampling.gathering`) samples with Gathers and solves the 6x6 system by
     Cramer's rule (one Det op); OpenVINO's by GridSample and Gauss-Jordan elimination (no Det)."""
@@ -133,8 +136,7 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         if sampling.gathering():  # outside the image `ok` is 0
             smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))
         else:
-            smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
-                                align_corners=True)[:, :, 0]  # (B,3,N)
+            smp = sampling.grid_sample_shared(stack, grid, layout)  # (B,3,N)
         nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
@@ -162,7 +164,7 @@ class _GaussNewtonLoop(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
-                offsets, trips: int, s: SolverSettings, capacity: int, batch: int):
+                offsets, trips: int, s: SolverSettings, capacity: int, batch: int, images: int):
         for _ in range(trips):
             P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell,
                                  row_map, offsets, s.scale_every, s)
@@ -170,11 +172,11 @@ class _GaussNewtonLoop(torch.autograd.Function):
 
     @staticmethod
     def symbolic(g, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
-                 offsets, trips: int, s: SolverSettings, capacity: int, batch: int):
+                 offsets, trips: int, s: SolverSettings, capacity: int, batch: int, images: int):
         out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
                    half, last_cell, row_map, offsets,
                    trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping,
-                   capacity_i=capacity, batch_i=batch, outputs=2)
+                   capacity_i=capacity, batch_i=batch, images_i=images, outputs=2)
         for o, like in zip(out, (P, active)):
             o.setType(like.type())
         return out
@@ -185,7 +187,8 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
                 s: SolverSettings) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to `iterations` Gauss-Newton steps of sum_n weight_n huber(I_t(pi(R X_n + t)) - ref_n).
     R (B,3,3), t (B,1,3) map frame t-1 points into frame t; updates R <- dR R, t <- dR t + rho.
-    stack (B,3,h,w): frame t's grey and its derivatives (`with_gradients`).
+    stack (G,3,h,w): frame t's grey and its derivatives (`with_gradients`), B = k G: rows
+    i k .. i k + k - 1 are solves of pair i (`solve`).
     Laid out for a short graph (each op costs microseconds, whatever its size): points along the
     last axis, the pose as one (B,3,4) matrix on homogeneous points, the projection straight to
     GridSample's coordinates, and the normal equations [H | g] as one MatMul of [J | r]. The steps
@@ -199,11 +202,12 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
     Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).transpose(1, 2)  # (B,4,N)
     P = torch.cat([R, t.transpose(1, 2)], -1)  # (B,3,4)
     ctx = (Xh, ref.unsqueeze(1), stack, G, f, weight.unsqueeze(1), (weight > 0).to(dtype).unsqueeze(1),
-           median_mask.unsqueeze(1), *sampling.inside_lattice(stack))
+           median_mask.unsqueeze(1), *sampling.inside_lattice(stack, X))
     active = torch.ones_like(K[:, None, :1])  # (B,1,1): 0 once the level has stopped
     trips, rest = divmod(iterations, s.scale_every)
     if torch.onnx.is_in_onnx_export() and trips > 1:
-        P, active = _GaussNewtonLoop.apply(P, active, *ctx, trips, s, int(X.shape[1]), int(X.shape[0]))
+        P, active = _GaussNewtonLoop.apply(P, active, *ctx, trips, s, int(X.shape[1]), int(X.shape[0]),
+                                           int(stack.shape[0]))
     else:
         # torch.compile takes every block: a data-dependent break would split its fused graph
         may_break = not (torch.jit.is_tracing() or torch.compiler.is_compiling())
@@ -219,8 +223,9 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
 def residuals_at(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
                  K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B,N) residuals I_t(pi(R X + t)) - ref of frame t-1's points X (B,N,3) under R (B,3,3), t
-    (B,1,3), which map them into frame t, in frame t's grey (B,1,H,W), and (B,N) 1 where the point
-    lands in view."""
+    (B,1,3), which map them into frame t, in frame t's grey (the first channel of grey2, (B,C,H,W):
+    the solver's stack as it is rather than a copy of its grey), and (B,N) 1 where the point lands
+    in view."""
     uv, _, front = project(X @ R.transpose(1, 2) + t, K)
     h, w = grey2.shape[-2:]
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
@@ -247,7 +252,8 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     least 0.5) than the classical solve's pose A_classical (both (B,4,4), frame t in frame t-1):
     the mean over those points of min(r^2, c^2) under A_classical minus the same under A, c = `cap`
     robust sigmas (1.4826 x the smaller median |r| of the two poses), in units of c^2: RANSAC's
-    MSAC cost, on full-resolution grey images (B,1,H,W) of both frames; weight (B,N) as `solve`'s.
+    MSAC cost, on full-resolution grey images of both frames (frame t's as the first channel of
+    its (B,C,H,W) stack); weight (B,N) as `solve`'s.
     Something that moves pulls the classical pose off the static points, and they say so; a
     confidence that doubts static points (a false detection) leaves them explained by both."""
     ref = sample_at(grey1, project(points, K)[0], inside=True)[:, 0]  # frame t-1's own points
@@ -284,9 +290,10 @@ def image_pyramids(image1: torch.Tensor, image2: torch.Tensor, levels: int) -> t
 def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor,
           init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None,
           mask: torch.Tensor | None = None):
-    """grey1, stack2 (`image_pyramids`): frame t-1's grey (B,1,h,w) and frame t's grey and
-    derivatives (B,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution
-    (grey1 may hold the first b pairs only where the batch is those b pairs solved B / b times);
+    """grey1, stack2 (`image_pyramids`): frame t-1's grey (G,1,h,w) and frame t's grey and
+    derivatives (G,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution;
+    G pairs, each solved k = B / G times from one copy of its images (batch rows i k .. i k + k - 1
+    are pair i's solves, which the points, weights, K and init of those rows may set apart);
     points (B,N,3) frame t-1's points in camera coordinates; weight (B,N): the mask times the
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
@@ -302,11 +309,11 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     for i, lvl in enumerate(reversed(range(len(s.iterations)))):
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
         # frame t-1's points land inside its full-resolution image (a pyrDown level's last column
-        # can be half a pixel short of them: zeros beyond, as the numpy tracker's remap); with
-        # grey1 for fewer pairs than the batch (the same pairs solved again) sampled once and repeated
-        g = grey1[lvl].shape[0]
-        ref = sample_at(grey1[lvl], project(points[:g], Kl[:g])[0], inside=lvl == 0)[:, 0]
-        ref = ref.repeat(points.shape[0] // g, 1) if g != points.shape[0] else ref
+        # can be half a pixel short of them: zeros beyond, as the numpy tracker's remap); sampled
+        # once per pair where k solves share it
+        k = points.shape[0] // grey1[lvl].shape[0]
+        ref = sample_at(grey1[lvl], project(points[::k], Kl[::k])[0], inside=lvl == 0)[:, 0]
+        ref = ref.unsqueeze(1).expand(-1, k, -1).flatten(0, 1) if k > 1 else ref
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         if lvl == 0 and s.refine > 0:
             mask = (weight > 0).to(weight.dtype) if mask is None else mask

@@ -130,16 +130,17 @@ class PointPose(nn.Module):
         grey1, stack2 = self.pyramids(solver)
         points, mask, K_image = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
         if self.cfg.pt_select > 0:
-            # the classical solve too, as the second half of one batch (a step's time is per-op
+            # the classical solve too, in one batch with the weighted one (a step's time is per-op
             # overhead, so two pairs cost about what one does), and its pose unless the weighted
             # one explains the points the network trusts better by more than pt_select
             # (`consensus_gain`)
-            two = lambda x: torch.cat([x, x], 0)  # noqa: E731
-            b = weight.shape[0]
-            both = solve(grey1, [two(g) for g in stack2], two(points), torch.cat([weight, mask], 0),
-                         two(K_image), two(init), self.settings, mask=two(mask))
-            levels, classical = [L[:b] for L in both], both[-1][b:]
-            gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0][:, :1], points, weight, K_image)
+            # batch rows 2i and 2i + 1 are pair i's two solves, which share its images (no copy)
+            pair = lambda a, c: torch.stack([a, c], 1).flatten(0, 1)  # noqa: E731
+            two = lambda x: pair(x, x)  # noqa: E731
+            both = solve(grey1, stack2, two(points), pair(weight, mask), two(K_image), two(init), self.settings,
+                         mask=two(mask))
+            levels, classical = [L[0::2] for L in both], both[-1][1::2]
+            gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)
             # the next pair starts from the weighted pose, whichever is kept: started from a
             # classical pose that tracked a vehicle, the weighted solve would track it too
             out["start_next"] = levels[-1]

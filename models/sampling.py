@@ -70,28 +70,54 @@ def bilinear(x: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return (v * _corner_weights(p - p0).unsqueeze(-1)).sum(1).transpose(1, 2)
 
 
-def inside_lattice(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """What `bilinear_inside` needs of x's size (B,C,h,w), computed once where x is sampled many
+def inside_lattice(x: torch.Tensor, solves: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What `bilinear_inside` needs of x's size (G,C,h,w), computed once where x is sampled many
     times (the Gauss-Newton steps): half the last pixel position (1,2,1), the last cell's corner
-    (1,2,1), the flat-index map (1, w) (1,1,2), and each channel's four corners' offsets in x
-    flattened (1,C,4,1), int32."""
+    (1,2,1), the flat-index map (1, w) (1,1,2), and each sampling row's four corners' offsets in
+    x flattened whole (S,C,4,1), int32. The S rows are those of `solves` (default: one per image),
+    S = k G: rows i k .. i k + k - 1 read image i (several solves of one pair, one copy of its
+    images)."""
     size = _size(x, x.dtype)  # (1,2,1): w, h
     w = size[:, :1]
     corners = torch.cat([torch.zeros_like(w), torch.ones_like(w), w, w + 1.0], 1)  # (1,4,1)
     channels = torch.arange(x.shape[1], dtype=x.dtype, device=x.device).view(1, -1, 1)  # no slice of x: a copy
-    offsets = corners.unsqueeze(1) + (channels * (w * size[:, 1:])).unsqueeze(-1)
-    # int32: a narrower index than int64 is cheaper to build and to gather with (positions below 2^24)
-    return (size - 1.0) * 0.5, size - 2.0, torch.cat([torch.ones_like(w), w], 2), offsets.to(torch.int32)
+    # int32: a narrower index than int64 is cheaper to build and to gather with; one image's
+    # positions stay below 2^24, exact in float32, and the images' strides are added as integers
+    offsets = (corners.unsqueeze(1) + (channels * (w * size[:, 1:])).unsqueeze(-1)).to(torch.int32)
+    rows = x if solves is None else solves
+    k = rows.shape[0] // x.shape[0]
+    image = torch.floor(torch.arange(rows.shape[0], dtype=x.dtype, device=x.device) * (1.0 / k)).to(torch.int32)
+    stride = (w * size[:, 1:] * float(x.shape[1])).to(torch.int32)  # (1,1,1): C h w
+    offsets = offsets + (image.view(-1, 1, 1) * stride).unsqueeze(-1)  # (S,C,4,1)
+    return (size - 1.0) * 0.5, size - 2.0, torch.cat([torch.ones_like(w), w], 2), offsets
 
 
 def bilinear_inside(x: torch.Tensor, grid: torch.Tensor, lattice: tuple | None = None) -> torch.Tensor:
-    """x (B,C,h,w) at GridSample coordinates grid (B,2,N) -> (B,C,N) for positions inside the
-    image ([-1, 1]); outside, finite values the caller masks. For few channels: one
-    GatherElements on x as it is (no copy of x, which the Gauss-Newton steps sample fifteen
-    times); `lattice` (`inside_lattice` of x) saves the ops that read x's size at every call."""
+    """x (G,C,h,w) at GridSample coordinates grid (B,2,N) -> (B,C,N) for positions inside the
+    image ([-1, 1]); outside, finite values the caller masks. B = G, or B = k G with `lattice`
+    made for B rows (`inside_lattice(x, solves)`): grid rows i k .. i k + k - 1 sample image i.
+    For few channels: one GatherElements on x as it is (no copy of x, which the Gauss-Newton
+    steps sample fifteen times); `lattice` saves the ops that read x's size at every call."""
     half, last_cell, row_map, offsets = inside_lattice(x) if lattice is None else lattice
     p = (grid.clamp(-1.0, 1.0) + 1.0) * half
     p0 = torch.minimum(torch.floor(p), last_cell)
-    index = (row_map @ p0).unsqueeze(1).to(torch.int32) + offsets  # (B,C,4,N) in x.flatten(1)
-    v = torch.gather(x.flatten(1), 1, index.flatten(1)).view_as(index)
+    index = (row_map @ p0).unsqueeze(1).to(torch.int32) + offsets  # (B,C,4,N) in x flattened whole
+    v = torch.gather(x.reshape(1, -1), 1, index.reshape(1, -1)).view_as(index)
     return (v * _corner_weights(p - p0).unsqueeze(1)).sum(2)
+
+
+def grid_sample_shared(x: torch.Tensor, grid: torch.Tensor, layout: tuple[int, int, int] | None = None
+                       ) -> torch.Tensor:
+    """F.grid_sample (zeros outside, align_corners) of x (G,C,h,w) at grid (B,2,N) -> (B,C,N),
+    B = k G, grid rows i k .. i k + k - 1 on image i: `bilinear_inside`'s sharing with GridSample,
+    image i's k grids side by side in one output row (reshapes, no copy of x). layout (k, C, N):
+    Python ints where the caller knows them, so that an exported graph reshapes by constants
+    (default from the shapes)."""
+    k, c, n = (grid.shape[0] // x.shape[0], x.shape[1], grid.shape[-1]) if layout is None else layout
+    g = grid.transpose(1, 2)  # (B,N,2)
+    if k == 1:
+        return F.grid_sample(x, g.unsqueeze(1), mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
+    out = F.grid_sample(x, g.reshape(-1, 1, k * n, 2), mode="bilinear", padding_mode="zeros",
+                        align_corners=True)  # (G,C,1,kN)
+    return out.reshape(-1, c, k, n).transpose(1, 2).reshape(-1, c, n)

@@ -104,7 +104,7 @@ def posterior_steps(density: float) -> Callable:
     in place of p: a point the residual says is an outlier loses its prior weight."""
     gn_steps, huber = point_solver.gn_steps, point_solver.huber_weights_at
 
-    def steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s):
+    def steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, *rest):
         def huber_and_posterior(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
             sigma = k / HUBER_K
             z = (r / sigma).abs()
@@ -114,7 +114,7 @@ def posterior_steps(density: float) -> Callable:
 
         point_solver.huber_weights_at = huber_and_posterior
         try:
-            return gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, n, s)
+            return gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, *rest)
         finally:
             point_solver.huber_weights_at = huber
 

@@ -14,7 +14,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine, load_manifest
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel
 from export.onnx_export import all_nodes
-from models.sampling import bilinear, bilinear_inside, gathered, gathering, inside_lattice
+from models.sampling import bilinear, bilinear_inside, gathered, gathering, grid_sample_shared, inside_lattice
 
 
 def _grid_sample(x, uv):
@@ -47,6 +47,23 @@ def test_matches_grid_sample_batched():
     assert (bilinear_inside(x, grid) - ref).abs().max() < 1e-6
     # with its lattice computed once, as the Gauss-Newton steps call it
     assert (bilinear_inside(x, grid, inside_lattice(x)) - ref).abs().max() < 1e-6
+
+
+def test_solves_sharing_an_image():
+    """Two solves per pair on one copy of its image (the weighted and the classical solve): batch
+    rows 2i and 2i + 1 sample image i, as GridSample on the image repeated for each row does."""
+    torch.manual_seed(1)
+    x = torch.rand(2, 3, 11, 17)  # two pairs
+    grid = torch.rand(4, 2, 300) * 2.0 - 1.0  # four solves
+    copies = x.repeat_interleave(2, 0)
+    ref = F.grid_sample(copies, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
+                        align_corners=True)[:, :, 0]
+    assert (bilinear_inside(x, grid, inside_lattice(x, grid)) - ref).abs().max() < 1e-6
+    assert (grid_sample_shared(x, grid) - ref).abs().max() < 1e-6
+    assert (grid_sample_shared(x, grid * 1.2) - _grid_sample(copies, (grid * 1.2 + 1.0) * torch.tensor(
+        [8.0, 5.0]).view(1, 2, 1))).abs().max() < 1e-5  # zeros outside, as GridSample
+    # with one solve per image it is GridSample itself
+    assert (grid_sample_shared(copies, grid) - ref).abs().max() < 1e-6
 
 
 def test_gathered_is_scoped():
