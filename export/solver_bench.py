@@ -40,12 +40,13 @@ LAYOUTS = {"gather": "GatherElements + Cramer (Det)", "gather_gj": "GatherElemen
 
 
 def block_feeds(height: int, width: int, points: int, batch: int = 2, seed: int = 0) -> dict[str, np.ndarray]:
-    """A block's inputs: a smooth random texture and its derivatives (`with_gradients`, as the
-    solver takes them), points 5-30 m ahead in view, 0.3 m of forward motion to recover."""
+    """A block's inputs: one pair's smooth random texture and its derivatives (`with_gradients`,
+    as the solver takes them) shared by `batch` solves, as the weighted and the classical solve
+    share it; points 5-30 m ahead in view, 0.3 m of forward motion to recover."""
     rng = np.random.default_rng(seed)
     f = 0.58 * width
-    grey = np.stack([cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), 3)[None]
-                     for _ in range(batch)])
+    grey = np.repeat(cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), 3)[None, None],
+                     batch, 0)
     z = rng.uniform(5.0, 30.0, (batch, 1, points))
     u, v = rng.uniform(0, width - 1, (batch, 1, points)), rng.uniform(0, height - 1, (batch, 1, points))
     X = np.concatenate([(u - width / 2) * z / f, (v - height / 2) * z / f, z, np.ones_like(z)], 1).astype(np.float32)
@@ -54,12 +55,12 @@ def block_feeds(height: int, width: int, points: int, batch: int = 2, seed: int 
     P[:, 2, 3] = -0.3
     ones = np.ones((batch, 1, points), np.float32)
     ref = np.stack([bilinear(grey[b, 0], np.stack([u[b, 0], v[b, 0]], 1))[None] for b in range(batch)])
-    stack = point_solver.with_gradients(torch.from_numpy(grey))
+    stack = point_solver.with_gradients(torch.from_numpy(grey[:1]))
     G = grid_intrinsics(K, torch.tensor([width, height], dtype=torch.float32))
     feeds = dict(P=P, active=np.ones((batch, 1, 1), np.float32), Xh=X, ref=ref.astype(np.float32),
                  stack=stack.numpy(), G=G.numpy(), f=np.full((batch, 2, 1), f, np.float32), weight=ones, w_ok=ones,
                  median_mask=ones)
-    feeds.update({k: t.numpy() for k, t in zip(BODY_INPUTS[-4:], sampling.inside_lattice(stack))})
+    feeds.update({k: t.numpy() for k, t in zip(BODY_INPUTS[-4:], sampling.inside_lattice(stack, torch.zeros(batch)))})
     return feeds
 
 
@@ -69,7 +70,7 @@ def export_block(layout: str, points: int, path: Path, batch: int = 2) -> int:
     with sampling.gathered(layout != "gridsample"), warnings.catch_warnings(), \
             (eliminate if layout == "gather_gj" else contextlib.nullcontext()):
         warnings.simplefilter("ignore")
-        g = block_graph(SolverSettings(), points, 17, False, batch)
+        g = block_graph(SolverSettings(), points, 17, False, batch, images=1)
     onnx.save(onnx.helper.make_model(g, opset_imports=[onnx.helper.make_opsetid("", 17)]), str(path))
     return sum(n.op_type != "Constant" for n in g.node)
 
