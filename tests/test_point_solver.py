@@ -265,10 +265,12 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
 
 
-def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path):
+@pytest.mark.parametrize("select", [0.0, 0.01])
+def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select):
     """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
     of two pairs (different start motions, so their levels stop at different blocks) gives each
-    pair the pose it gets alone."""
+    pair the pose it gets alone. With `pt_select` each pair is solved twice (weighted and
+    classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's."""
     import onnxruntime as ort
 
     from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
@@ -276,7 +278,7 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path):
     from models.checkpoint import build_model, load_checkpoint
 
     ck, _ = points_model
-    export_checkpoint(ck, ExportConfig(out=tmp_path / "dyn", dynamic_batch=True))
+    export_checkpoint(ck, ExportConfig(out=tmp_path / "dyn", dynamic_batch=True, solver={"pt_select": select}))
     model = build_model(load_checkpoint(ck))
     names = flowpose_input_names(model)
     one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
@@ -288,6 +290,10 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path):
         both = sess.run(["matrix"], {n: np.concatenate([one[n], other[n]]) for n in names})[0]
         assert np.abs(alone[0] - alone[1]).max() > 1e-3  # two different problems
         np.testing.assert_allclose(both, np.stack(alone), atol=1e-5)
+        if select:  # the weighted solve's pose, the next start, pair by pair too
+            alone = [sess.run(["start_next"], feeds)[0][0] for feeds in (one, other)]
+            both = sess.run(["start_next"], {n: np.concatenate([one[n], other[n]]) for n in names})[0]
+            np.testing.assert_allclose(both, np.stack(alone), atol=1e-5)
 
 
 def test_direct_method_is_the_models_classical_mode(points_model):
