@@ -64,19 +64,18 @@ def with_gradients(g: torch.Tensor) -> torch.Tensor:
 
 
 def sample_at(img: torch.Tensor, uv: torch.Tensor, inside: bool = False) -> torch.Tensor:
-    """Bilinear (B,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w as
-    `image_size`. inside: the caller masks positions outside the image (or has none), so
-    onnxruntime's graph gathers from the image as it is (`sampling.bilinear_inside`) instead of
-    padding and transposing all of it for a few thousand samples."""
+    """Bilinear (G,C,h,w) at pixel positions (B,N,2) -> (B,C,N), zeros outside; h, w as
+    `image_size`; B = G, or with `inside` B = k G (rows i k .. i k + k - 1 on image i). inside: the
+    caller masks positions outside the image (or has none), so onnxruntime's graph gathers from
+    the image as it is (`sampling.bilinear_inside`) instead of padding and transposing all of it
+    for a few thousand samples."""
     if sampling.gathering() and not inside:
         return sampling.bilinear(img, uv.transpose(1, 2))
     size = image_size(img, uv.dtype)  # (h, w)
-    gx = 2.0 * uv[..., 0] / (size[1] - 1) - 1.0
-    gy = 2.0 * uv[..., 1] / (size[0] - 1) - 1.0
+    grid = torch.stack([2.0 * uv[..., 0] / (size[1] - 1) - 1.0, 2.0 * uv[..., 1] / (size[0] - 1) - 1.0], 1)
     if sampling.gathering():
-        return sampling.bilinear_inside(img, torch.stack([gx, gy], 1))
-    grid = torch.stack([gx, gy], -1).unsqueeze(1)
-    return F.grid_sample(img, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
+        return sampling.bilinear_inside(img, grid, sampling.inside_lattice(img, uv))
+    return sampling.grid_sample_shared(img, grid)
 
 
 def project(X: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

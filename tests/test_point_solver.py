@@ -265,12 +265,13 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
 
 
-@pytest.mark.parametrize("select", [0.0, 0.01])
-def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select):
+@pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 0), (0.01, 2)])
+def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select, refine):
     """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
     of two pairs (different start motions, so their levels stop at different blocks) gives each
     pair the pose it gets alone. With `pt_select` each pair is solved twice (weighted and
-    classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's."""
+    classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's (the
+    refinement's check of the solved pose, `pt_refine`, too)."""
     import onnxruntime as ort
 
     from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
@@ -278,7 +279,8 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select)
     from models.checkpoint import build_model, load_checkpoint
 
     ck, _ = points_model
-    export_checkpoint(ck, ExportConfig(out=tmp_path / "dyn", dynamic_batch=True, solver={"pt_select": select}))
+    export_checkpoint(ck, ExportConfig(out=tmp_path / "dyn", dynamic_batch=True,
+                                       solver={"pt_select": select, "pt_refine": refine}))
     model = build_model(load_checkpoint(ck))
     names = flowpose_input_names(model)
     one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
