@@ -199,6 +199,7 @@ def feature_align(M: torch.Tensor, X: torch.Tensor, stack: torch.Tensor, ref: to
     diagonal_at = literal([[8 * i] for i in range(6)], X).long()  # H's diagonal in [H | g] flattened
     to_last = literal([[0.0, 0.0, 0.0, 1.0]], X)  # rho (B,3,1) -> (B,3,4) as the translation column
     limits = literal([max_trans, max_rot], X)
+    lattice = sampling.inside_lattice(stack) if sampling.gathering() else None  # once, not at every step
     for _ in range(iterations):
         Xt = P @ Xh  # (B,3,N)
         z = Xt[:, 2:3]
@@ -208,7 +209,7 @@ def feature_align(M: torch.Tensor, X: torch.Tensor, stack: torch.Tensor, ref: to
         # must not switch its weight on or off (a jump in the solution that float rounding triggers)
         inside = ((1.0 - grid.abs()) * half).amin(1, keepdim=True).clamp(0.0, 1.0)
         if sampling.gathering():  # outside the image `inside` is 0
-            smp = sampling.bilinear_inside(stack, grid).reshape(b, 3, c, n)
+            smp = sampling.bilinear_inside(stack, grid, lattice).reshape(b, 3, c, n)
         else:
             smp = F.grid_sample(stack, grid.transpose(1, 2).unsqueeze(1), mode="bilinear", padding_mode="zeros",
                                 align_corners=True).reshape(b, 3, c, n)  # grey/features, d/du, d/dv

@@ -117,8 +117,8 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
     active (B,1,1) is 1 until a step falls below `s.stop_step`; a stopped level's steps are 0.
     half .. offsets: `sampling.inside_lattice(stack, Xh)`; stack may hold one image per k rows
     (layout: `sampling.grid_sample_shared`'s (k, channels, points), which an export passes as
-    constants). Also the body of the exported
-    graph's Loop (`export/solver_loop.py`), so all its inputs are tensors of the outer graph.
+    constants). Also the body of the exported graph's Loop (`export/solver_loop.py`), so all its
+    inputs are tensors of the outer graph.
     onnxruntime's graph (`sampling.gathering`) samples with Gathers and solves the 6x6 system by
     Cramer's rule (one Det op); OpenVINO's by GridSample and Gauss-Jordan elimination (no Det)."""
     roll, roll_back, diff = literal(ROLL, Xh), literal(ROLL_BACK, Xh), literal(DIFF, Xh)
@@ -222,9 +222,9 @@ def align_level(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Te
 def residuals_at(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: torch.Tensor, grey2: torch.Tensor,
                  K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B,N) residuals I_t(pi(R X + t)) - ref of frame t-1's points X (B,N,3) under R (B,3,3), t
-    (B,1,3), which map them into frame t, in frame t's grey (the first channel of grey2, (B,C,H,W):
-    the solver's stack as it is rather than a copy of its grey), and (B,N) 1 where the point lands
-    in view."""
+    (B,1,3), which map them into frame t, in frame t's grey (the first channel of grey2, (G,C,H,W),
+    B = k G as `sample_at`: the solver's stack as it is rather than a copy of its grey), and (B,N)
+    1 where the point lands in view."""
     uv, _, front = project(X @ R.transpose(1, 2) + t, K)
     h, w = grey2.shape[-2:]
     inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
@@ -238,7 +238,7 @@ def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: to
     in frame t's grey within the Huber threshold of all residuals), else `weight`. The confidence
     is a prior read before the pose is known; a point that the pose fits is static evidence
     whatever the prior said, and a mover stays down: under the right pose its residual is large."""
-    r, seen = residuals_at(R, t, X, ref, stack[:, :1], K)
+    r, seen = residuals_at(R, t, X, ref, stack, K)
     ok = seen * (mask > 0).to(r.dtype)
     k = huber_threshold(r, ok * median_mask)
     return torch.where((r.abs() <= k) & (ok > 0), mask, weight)
@@ -311,7 +311,8 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
         # can be half a pixel short of them: zeros beyond, as the numpy tracker's remap); sampled
         # once per pair where k solves share it
         k = points.shape[0] // grey1[lvl].shape[0]
-        ref = sample_at(grey1[lvl], project(points[::k], Kl[::k])[0], inside=lvl == 0)[:, 0]
+        first = (points[::k], Kl[::k]) if k > 1 else (points, Kl)
+        ref = sample_at(grey1[lvl], project(*first)[0], inside=lvl == 0)[:, 0]
         ref = ref.unsqueeze(1).expand(-1, k, -1).flatten(0, 1) if k > 1 else ref
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         if lvl == 0 and s.refine > 0:

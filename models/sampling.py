@@ -87,7 +87,9 @@ def inside_lattice(x: torch.Tensor, solves: torch.Tensor | None = None
     offsets = (corners.unsqueeze(1) + (channels * (w * size[:, 1:])).unsqueeze(-1)).to(torch.int32)
     rows = x if solves is None else solves
     k = rows.shape[0] // x.shape[0]
-    image = torch.floor(torch.arange(rows.shape[0], dtype=x.dtype, device=x.device) * (1.0 / k)).to(torch.int32)
+    # row i's image i // k; (i + 1/2) / k lies at least 1/(2k) from an integer, so float rounding
+    # cannot carry it across one (a floor division of integers exports as a dozen ops)
+    image = torch.floor((torch.arange(rows.shape[0], dtype=x.dtype, device=x.device) + 0.5) / k).to(torch.int32)
     stride = (w * size[:, 1:] * float(x.shape[1])).to(torch.int32)  # (1,1,1): C h w
     offsets = offsets + (image.view(-1, 1, 1) * stride).unsqueeze(-1)  # (S,C,4,1)
     return (size - 1.0) * 0.5, size - 2.0, torch.cat([torch.ones_like(w), w], 2), offsets

@@ -94,6 +94,66 @@ def test_recovers_a_known_motion_on_a_textured_plane():
     assert t_err < 1e-3 and r_err < 0.005
 
 
+@pytest.mark.parametrize("gather", [False, True])
+def test_two_solves_per_pair_on_one_copy_of_its_images(gather):
+    """`solve` batched as the bundled graph batches it: two pairs, each solved with a confidence's
+    weights and with every weight 1 as rows 2i and 2i + 1 on one copy of the pair's images
+    (GridSample's and onnxruntime's gather sampling; the refinement's check too). Every row is its
+    pair solved alone with that weight."""
+    from models.sampling import gathered
+
+    motions = [make_se3(axis_angle_to_rot([0.01, -0.03, 0.005]), [0.1, -0.05, 0.9]),
+               make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.05, 0.0, 0.6])]
+    scenes = [_plane_inputs(A) for A in motions]
+    n = max(len(sc[3]) for sc in scenes) + 100
+    rng = np.random.default_rng(0)
+    g0, g1, pts, mask, w = [], [], [], [], []
+    for calib, _, (a, b, _, _), X in scenes:
+        p, m = pad_points(X, n)
+        g0.append(a), g1.append(b), pts.append(_t(p)), mask.append(_t(m))
+        w.append(mask[-1] * _t(rng.uniform(0.2, 1.0, m.shape)))
+    K, init = _k(scenes[0][0].K2), _t(np.eye(4))[None]
+    s = SolverSettings(iterations=(3, 3, 3), refine=2)
+    pair = lambda a, c: torch.stack([a, c], 1).flatten(0, 1)  # noqa: E731
+    with gathered(gather):
+        grey1, stack2 = image_pyramids(torch.cat(g0), torch.cat(g1), 3)
+        P, M, W = torch.cat(pts), torch.cat(mask), torch.cat(w)
+        both = solve(grey1, stack2, pair(P, P), pair(W, M), K.repeat(4, 1), init.repeat(4, 1, 1), s,
+                     mask=pair(M, M))[-1]
+        for i in range(2):
+            alone = image_pyramids(g0[i], g1[i], 3)
+            for j, weight in enumerate((w[i], mask[i])):
+                want = solve(*alone, pts[i], weight, K, init, s, mask=mask[i])[-1][0]
+                np.testing.assert_allclose(both[2 * i + j].numpy(), want.numpy(), atol=1e-9)
+    assert np.abs(both[0] - both[2]).max() > 1e-2  # two different pairs
+
+
+def test_the_next_start_is_the_weighted_solve_and_the_kept_pose_the_classical_one(monkeypatch):
+    """PointPose with `pt_select`: of its one batch of two solves, `start_next` is the solve with the
+    confidence's weights and, where the selection keeps the classical pose (a threshold of 0.999
+    that no gain passes), the final pose is the solve with every weight 1, each as solved alone."""
+    from models.config import D3LVOConfig
+    from models.point_solver import pyramid_input_names
+    from models.pose_points import PointPose
+
+    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_select=0.999, pt_iters=(3, 3, 3)))
+    A = make_se3(axis_angle_to_rot([0.01, -0.03, 0.005]), [0.1, -0.05, 0.9])
+    calib, _, (g0, g1, pts, mask), _ = _plane_inputs(A)
+    logits = _t(np.random.default_rng(0).normal(0.0, 2.0, (1, 1, 44, 152)))  # a confidence far from uniform
+    monkeypatch.setattr(pp, "moving_logits", lambda *args: logits)
+    grey1, stack2 = image_pyramids(g0, g1, 3)
+    names1, names2 = pyramid_input_names(3)
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
+              "image_intrinsics": K}
+    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
+    weighted = solve(grey1, stack2, pts, out["point_weights"], K, init, pp.settings, mask=mask)[-1]
+    classical = solve(grey1, stack2, pts, mask, K, init, pp.settings, mask=mask)[-1]
+    assert np.abs(weighted - classical).max() > 1e-6  # the weights matter
+    np.testing.assert_allclose(out["start_next"].numpy(), weighted.numpy(), atol=1e-9)
+    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), classical.numpy(), atol=1e-9)
+
+
 def test_zero_weight_points_are_ignored():
     """Points on the plane's left half moved as if by another object: the tracker, which weighs all
     of them, is pulled off; weight 0 on them gives the true motion again (what the learned
@@ -265,13 +325,14 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
 
 
-@pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 0), (0.01, 2)])
+@pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 0), (0.01, 2), (0.999, 0)])
 def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select, refine):
     """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
     of two pairs (different start motions, so their levels stop at different blocks) gives each
     pair the pose it gets alone. With `pt_select` each pair is solved twice (weighted and
     classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's (the
-    refinement's check of the solved pose, `pt_refine`, too)."""
+    refinement's check of the solved pose, `pt_refine`, too; with pt_select 0.999 `matrix` is
+    practically always the classical rows' pose and `start_next` the weighted rows')."""
     import onnxruntime as ort
 
     from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
@@ -285,7 +346,7 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
     names = flowpose_input_names(model)
     one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
     other = dict(one, init_pose=make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.1, 0.0, 1.0])[None].astype(np.float32),
-                 **{n: np.roll(one[n], 1, -1) for n in names if n.startswith("stack2_p")})  # frame t moved on
+                 **{n: np.roll(one[n], 1, -1) for n in names if n.startswith(("stack2_p", "image1_p"))})  # other frames
     for graph in ("flowpose.onnx", "flowpose.onnxruntime.onnx"):  # GridSample's and onnxruntime's
         sess = ort.InferenceSession(str(tmp_path / "dyn" / graph), providers=["CPUExecutionProvider"])
         alone = [sess.run(["matrix"], feeds)[0][0] for feeds in (one, other)]
