@@ -12,7 +12,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
-               "pt_refine", "pt_select")
+               "pt_refine", "pt_select", "pt_select_rotation")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -102,6 +102,11 @@ class D3LVOConfig:
     # classical pose, fitted to every point at full weight, is the better estimate, and only
     # something that moves pulls it off the static points. 0: the weighted pose always
     pt_select: float = 0.0
+    # with pt_select, the weighted pose is kept only where its rotation also differs from the
+    # classical one's by more than this many degrees: below it the two are the same solution up
+    # to the solver's noise, and the classical one, fitted to every point, has the lower variance.
+    # 0: off (docs/model-card.md, chosen on validation drives)
+    pt_select_rotation: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -166,6 +171,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_gate must be in [0, 1), not {self.pt_gate!r}")
         if not (isinstance(self.pt_select, (int, float)) and 0 <= self.pt_select < 1):
             raise ValueError(f"pt_select must be in [0, 1) (0: off), not {self.pt_select!r}")
+        if not (isinstance(self.pt_select_rotation, (int, float)) and 0 <= self.pt_select_rotation < 90):
+            raise ValueError(f"pt_select_rotation must be in [0, 90) degrees (0: off), not {self.pt_select_rotation!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

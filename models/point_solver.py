@@ -22,6 +22,8 @@ Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import torch
@@ -265,6 +267,16 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     trusted = ok * (weight >= 0.5).to(ref.dtype)
     cost = lambda x: torch.minimum(x * x / limit, torch.ones_like(x))  # noqa: E731
     return ((cost(r_c) - cost(r)) * trusted).sum(-1) / trusted.sum(-1).clamp(min=1.0)
+
+
+def rotations_differ(A: torch.Tensor, B: torch.Tensor, degrees: float) -> torch.Tensor:
+    """(B,) bool: the rotations of A and B (B,4,4) differ by more than `degrees` (under 90). The
+    angle's sine from the skew part of A_R^T B_R: its cosine, from the trace, cannot resolve
+    hundredths of a degree in float32."""
+    D = A[:, :3, :3].transpose(1, 2) @ B[:, :3, :3]
+    v = torch.stack([D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], -1) * 0.5
+    trace = D[:, 0, 0] + D[:, 1, 1] + D[:, 2, 2]
+    return ((v * v).sum(-1) > math.sin(math.radians(degrees)) ** 2) | (trace < 1.0)  # (trace - 1) / 2 < 0: past 90
 
 
 def pyramid_input_names(levels: int) -> tuple[list[str], list[str]]:

@@ -28,7 +28,8 @@ from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
 from .layers import conv
-from .point_solver import SolverSettings, consensus_gain, image_pyramids, project, pyramid_input_names, solve
+from .point_solver import (SolverSettings, consensus_gain, image_pyramids, project, pyramid_input_names,
+                           rotations_differ, solve)
 
 
 class MovingLogits(nn.Module):
@@ -144,7 +145,10 @@ class PointPose(nn.Module):
             # the next pair starts from the weighted pose, whichever is kept: started from a
             # classical pose that tracked a vehicle, the weighted solve would track it too
             out["start_next"] = levels[-1]
-            levels = [*levels[:-1], torch.where((gain > self.cfg.pt_select)[:, None, None], levels[-1], classical)]
+            keep = gain > self.cfg.pt_select
+            if self.cfg.pt_select_rotation > 0:
+                keep = keep & rotations_differ(levels[-1], classical, self.cfg.pt_select_rotation)
+            levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"] = gain
         else:
             levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask)

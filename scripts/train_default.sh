@@ -127,12 +127,14 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 
 # ship the final weights, weights + config only (no optimizer state), with the solver settings
 # measured for the direct tracker (docs/evaluation.md) and the classical pose kept unless the
-# weighted one explains the trusted points better by 0.01 (pt_select, docs/model-card.md), each
-# point weighted by its confidence to the fourth power (pt_conf_power, chosen on the validation
-# drives at the end of this script), and export from exactly that file
+# weighted one explains the trusted points better by 0.005 and its rotation differs by more than
+# 0.05 degrees (pt_select, pt_select_rotation: chosen on the validation drives with
+# scripts/selection_rules.py below, docs/model-card.md), each point weighted by its confidence to
+# the fourth power (pt_conf_power, chosen on the validation drives at the end of this script), and
+# export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
-  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.01, \
-  pt_conf_power=4.0))"
+  'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
+  pt_select_rotation=0.05, pt_conf_power=4.0))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
@@ -182,6 +184,8 @@ for s in heldout_09 heldout_10; do
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/rgb_onnx" --out "$OUT/eval/rgb_$s.txt" --overwrite
 done
 
+# the sweeps below select as the model card's tables of them: pt_select 0.01, no rotation gate
+SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
 # the static prior pt_conf_full (a point weighs 1 once its confidence reaches it), measured on the
 # validation drives with and without traffic (docs/model-card.md): it stays off
 [ -f "$OUT/data/val_static/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static" --frames 100 --seed 601 \
@@ -191,7 +195,7 @@ for s in val_traffic val_static; do
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 for c in 0.5 0.7 0.85; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/conf_full_$c" --set pt_conf_full=$c
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/conf_full_$c" --set pt_conf_full=$c $SEL01
   for s in val_traffic val_static; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
       --overwrite
@@ -207,7 +211,7 @@ for spec in "602 03 300" "603 07 500" "604 06 200"; do
     --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
 done
 for p in 1 2 4 8; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/power_$p" --set pt_conf_power=$p
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/power_$p" --set pt_conf_power=$p $SEL01
   for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_$p" --backend onnxruntime --threads 1 \
       --out "$OUT/eval/power_${p}_$s.txt" --overwrite
@@ -235,9 +239,11 @@ for s in "${NEW[@]}"; do
     --out "$OUT/eval/power_4_$s.txt" --overwrite
 done
 for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$set" --set "$set"
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$set" $SEL01 --set "$set"
   for s in "${VAL[@]}"; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/$set" --backend onnxruntime --threads 1 --out "$OUT/eval/${set}_$s.txt" \
       --overwrite
   done
 done
+# the selection's two thresholds, on the fourteen validation drives (docs/model-card.md)
+.venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*

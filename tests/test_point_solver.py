@@ -17,7 +17,7 @@ from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points,
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.gauss_newton import gauss_jordan, so3_exp_small  # noqa: E402
 from models import gauss_newton as gn  # noqa: E402
-from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, masked_median, project,  # noqa: E402
+from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, masked_median, project, rotations_differ,  # noqa: E402
                                  pyr_down, restore_explained, sample_at, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
@@ -239,7 +239,7 @@ def test_consensus_gain_tells_a_mover_from_a_false_detection():
     """The plane's left half moved (another object) or not (a static scene), its points weighted
     0 either way, as a confidence that flags them would. With the mover, the classical pose
     (every point at full weight) is pulled off the static right half, which the weighted pose
-    explains: the gain is large, and above the bundled threshold pt_select = 0.01. Without it
+    explains: the gain is large, and above the bundled threshold pt_select = 0.005. Without it
     both poses are the true motion and the gain is nil, so `pt_select` keeps the classical pose.
     Both figures agree with the gain written out in numpy."""
     A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
@@ -264,6 +264,67 @@ def test_consensus_gain_tells_a_mover_from_a_false_detection():
         assert abs(gain - expected) < 1e-4
         gains[case] = gain
     assert gains["mover"] > 0.1 and abs(gains["static"]) < 0.001
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rotations_differ_by_the_angle_between_them(dtype):
+    """Two rotations about one axis differ by the difference of their angles: 0.049 and 0.051
+    degrees apart fall either side of a 0.05 degree threshold in float32 too (where the trace's
+    cosine cannot tell them apart), 120 degrees apart (past 90, where the sine falls again) differ,
+    and random pairs agree with numpy's angle of A^T B."""
+    axis = np.array([0.3, 0.9, -0.2]) / np.linalg.norm([0.3, 0.9, -0.2])
+    base = np.radians(1.3)
+
+    def pose(rad, ax=axis):
+        return torch.tensor(make_se3(axis_angle_to_rot(ax * rad), [0.1, 0.0, 0.8]), dtype=dtype)[None]
+
+    for apart, differ in ((0.049, False), (0.051, True), (0.0, False), (120.0, True)):
+        got = rotations_differ(pose(base), pose(base + np.radians(apart)), 0.05)
+        assert bool(got[0]) is differ, apart
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        A = axis_angle_to_rot(rng.normal(0.0, 0.5, 3))
+        B = A @ axis_angle_to_rot(rng.normal(0.0, np.radians(0.05), 3))
+        angle = np.degrees(rotation_angle(A.T @ B))
+        if abs(angle - 0.05) > 2e-3:  # float32 rounding apart
+            to = lambda R: torch.tensor(make_se3(R, [0.0, 0.0, 0.0]), dtype=dtype)[None]  # noqa: E731
+            assert bool(rotations_differ(to(A), to(B), 0.05)[0]) == bool(angle > 0.05)
+
+
+@pytest.mark.parametrize("margin, kept", [(0.9, "weighted"), (1.1, "classical")])
+def test_the_weighted_pose_is_kept_only_where_its_rotation_differs(monkeypatch, margin, kept):
+    """PointPose with `pt_select` and `pt_select_rotation`: with a mover (the plane's left half,
+    weighted 0) the weighted pose explains the trusted points far better than the classical one;
+    it is kept with the rotation threshold just under the angle between the two poses (numpy's),
+    and the classical pose is kept with the threshold just over it."""
+    from models.config import D3LVOConfig
+    from models.point_solver import pyramid_input_names
+    from models.pose_points import PointPose
+
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1 = _t(grey_image(moved))[None, None]
+    weight = mask.clone()
+    weight[0, : len(X)] = _t((calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310)
+    grey1, stack2 = image_pyramids(g0, g1, 3)
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    settings = SolverSettings((3, 3, 3))
+    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
+    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
+    angle = np.degrees(rotation_angle(weighted[0, :3, :3].numpy().T @ classical[0, :3, :3].numpy()))
+    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1 and angle > 0.01
+    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_select=0.01, pt_iters=(3, 3, 3),
+                                     pt_select_rotation=float(angle * margin)))
+    monkeypatch.setattr(pp, "moving_logits", lambda *args: torch.zeros(1, 1, 44, 152))
+    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
+    names1, names2 = pyramid_input_names(3)
+    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
+              "image_intrinsics": K}
+    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
+    want = weighted if kept == "weighted" else classical
+    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
 
 
 def _real_pair():

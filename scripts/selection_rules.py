@@ -1,0 +1,121 @@
+"""Choose `pt_select` and `pt_select_rotation` on validation drives.
+
+    python scripts/selection_rules.py [--ckpt CKPT] DRIVE...
+
+Runs the checkpoint once per drive (torch, one thread) and records, per pair, the weighted and the
+classical solve's poses and the consensus gain. Each pair starts from the weighted pose whatever is
+kept, so every rule's trajectory is the recorded poses chosen pair by pair: the grid below is
+scored without running the network again. Prints, per rule, each drive's t_rel % (ATE m, marked
+`ate`, for drives under 100 m), and the sums the choice reads: on static drives the difference
+to the classical pose kept always, on drives with traffic (a `synth.json` with traffic above 0)
+the mean and the smallest reduction against it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from d3lvo_deploy.bundled import bundled_model_dir
+from d3lvo_deploy.evaluation import evaluate
+from d3lvo_deploy.geometry import accumulate, change_frame, rotation_angle_precise
+from d3lvo_deploy.poses import Trajectory, read_poses
+from d3lvo_deploy.sequence import KittiSequence
+from models import pose_points
+from models.checkpoint import build_model, load_checkpoint
+from models.predict import predict_sequence
+
+GAINS = (0.003, 0.005, 0.0075, 0.01, 0.02)
+ROTATIONS = (0.0, 0.04, 0.05, 0.06, 0.08, 0.1)  # degrees; 0: off
+
+
+def record_pairs(model, drive: str) -> list[dict]:
+    """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1)."""
+    pairs: list[dict] = []
+    forward = pose_points.PointPose.forward
+
+    def recording(self, *args):
+        out = forward(self, *args)
+        if "consensus_gain" in out:
+            classical = solve_rows[-1]
+            pairs.append(dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
+                              C=classical))
+        return out
+
+    solve_rows: list[np.ndarray] = []
+    solve = pose_points.solve
+
+    def solving(*args, **kwargs):
+        levels = solve(*args, **kwargs)
+        if levels[-1].shape[0] == 2:  # rows 0 and 1: the pair's weighted and classical solve
+            solve_rows.append(levels[-1][1].double().numpy())
+        return levels
+
+    pose_points.PointPose.forward, pose_points.solve = recording, solving
+    try:
+        predict_sequence(model, drive)
+    finally:
+        pose_points.PointPose.forward, pose_points.solve = forward, solve
+    return pairs
+
+
+def score(drive: str, relatives: list[np.ndarray]) -> tuple[float, str]:
+    seq = KittiSequence.open(drive)
+    rel = np.array([change_frame(A, seq.calib.T_cam0_cam2) for A in relatives])
+    r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(accumulate(rel)))
+    return (r.t_rel, "") if r.t_rel is not None else (r.ate, " ate")
+
+
+def has_traffic(drive: str) -> bool:
+    meta = Path(drive) / "synth.json"
+    return meta.is_file() and float(json.loads(meta.read_text()).get("traffic", 0) or 0) > 0
+
+
+def main(drives: list[str], checkpoint: Path) -> None:
+    for drive in drives:
+        if not (Path(drive) / "poses.txt").is_file():
+            sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
+    torch.set_num_threads(1)
+    ck = load_checkpoint(checkpoint)
+    ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0)  # both solves, every pair
+    model = build_model(ck)
+    pairs = {}
+    for drive in drives:
+        pairs[drive] = record_pairs(model, drive)
+        for p in pairs[drive]:
+            D = p["C"][:3, :3].T @ p["W"][:3, :3]
+            p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
+        print(f"recorded {Path(drive).name}: {len(pairs[drive])} pairs", flush=True)
+    classical = {d: score(d, [p["C"] for p in pairs[d]])[0] for d in drives}
+    rules = [("classical always", lambda p: False), ("weighted always", lambda p: True)]
+    for g, r in itertools.product(GAINS, ROTATIONS):
+        rules.append((f"pt_select {g} pt_select_rotation {r}",
+                      lambda p, g=g, r=r: p["gain"] > g and p["rotation"] > r))
+    print("drives: " + " ".join(Path(d).name for d in drives))
+    for name, keep in rules:
+        scores = {d: score(d, [p["W"] if keep(p) else p["C"] for p in pairs[d]]) for d in drives}
+        static = [scores[d][0] - classical[d] for d in drives if not has_traffic(d)]
+        cut = [1 - scores[d][0] / classical[d] for d in drives if has_traffic(d)]
+        summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
+                  f"{sum(x < -1e-4 for x in static)}" if static else ""
+        if cut:
+            summary += f"; traffic: cut mean {100 * np.mean(cut):.1f} %, smallest {100 * min(cut):.1f} %"
+        print(f"{name:40s} {summary} | " + " ".join(f"{s:.3f}{unit}" for s, unit in scores.values()), flush=True)
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    ckpt = bundled_model_dir() / "default.pt"
+    if args[:1] == ["--ckpt"] and len(args) > 1:
+        ckpt, args = Path(args[1]), args[2:]
+    if not args:
+        sys.exit(__doc__)
+    if not ckpt.is_file():
+        sys.exit(f"{ckpt}: no such checkpoint")
+    main(args, ckpt)
