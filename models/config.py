@@ -105,7 +105,8 @@ class D3LVOConfig:
     # with pt_select, the weighted pose is kept only where its rotation also differs from the
     # classical one's by more than this many degrees: below it the two are the same solution up
     # to the solver's noise, and the classical one, fitted to every point, has the lower variance.
-    # 0: off (docs/model-card.md, chosen on validation drives)
+    # 0: off; with pt_select 0 (the weighted pose always) it has nothing to gate (docs/model-card.md,
+    # chosen on validation drives)
     pt_select_rotation: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse

@@ -270,7 +270,7 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
 
 
 def rotations_differ(A: torch.Tensor, B: torch.Tensor, degrees: float) -> torch.Tensor:
-    """(B,) bool: the rotations of A and B (B,4,4) differ by more than `degrees` (under 90). The
+    """(batch,) bool: the rotations of A and B (batch,4,4) differ by more than `degrees` (under 90). The
     angle's sine from the skew part of A_R^T B_R: its cosine, from the trace, cannot resolve
     hundredths of a degree in float32."""
     D = A[:, :3, :3].transpose(1, 2) @ B[:, :3, :3]

@@ -253,7 +253,8 @@ def main(variant: str, drives: list[str], checkpoint: Path) -> None:
     ck = load_checkpoint(checkpoint)
     # every variant but pt_select:T and kept-start:T scores the weighted pose alone (the bundled model keeps the
     # classical pose where the weighted one does not explain the trusted points better)
-    ck["config"] = replace(ck["config"], pt_select=numbers[0] if name in ("pt_select", "kept-start") else 0.0)
+    ck["config"] = replace(ck["config"], pt_select=numbers[0] if name in ("pt_select", "kept-start") else 0.0,
+                           pt_select_rotation=0.0)  # the gain alone, as the model card's tables of these variants
     model = build_model(ck)
     for drive in drives:
         est = predict_sequence(model, drive)

@@ -191,10 +191,9 @@ SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
 [ -f "$OUT/data/val_static/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static" --frames 100 --seed 601 \
   --size "$SIZE" --motion-from "$GT/05.txt" --motion-start 1800
 for s in val_traffic val_static; do
-  "$D3LVO" run "$OUT/data/$s" --backend onnxruntime --out "$OUT/eval/conf_full_1_$s.txt" --overwrite
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
-for c in 0.5 0.7 0.85; do
+for c in 1 0.5 0.7 0.85; do
   "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/conf_full_$c" --set pt_conf_full=$c $SEL01
   for s in val_traffic val_static; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
@@ -229,8 +228,8 @@ for spec in "608 00 1000" "609 02 2000" "610 05 1200" "611 08 3000"; do
 done
 NEW=(val_traffic_612 val_traffic_613 val_static_608 val_static_609 val_static_610 val_static_611)
 VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4 "${NEW[@]}")
-# the classical mode where the static prior's runs above have not scored it, the shipped settings
-# (power_4, as bundled) where the power sweep has not
+# the classical mode where the static prior's runs above have not scored it, power 4 (power_4)
+# where the power sweep has not
 for s in val_traffic_2 val_traffic_3 val_traffic_4 val_static_2 val_static_3 val_static_4 "${NEW[@]}"; do
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done

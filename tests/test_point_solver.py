@@ -270,7 +270,8 @@ def test_consensus_gain_tells_a_mover_from_a_false_detection():
 def test_rotations_differ_by_the_angle_between_them(dtype):
     """Two rotations about one axis differ by the difference of their angles: 0.049 and 0.051
     degrees apart fall either side of a 0.05 degree threshold in float32 too (where the trace's
-    cosine cannot tell them apart), 120 degrees apart (past 90, where the sine falls again) differ,
+    cosine cannot tell them apart), 120 and 179.97 degrees apart (past 90, where the sine falls
+    again, to that of 0.03 degrees) differ,
     and random pairs agree with numpy's angle of A^T B."""
     axis = np.array([0.3, 0.9, -0.2]) / np.linalg.norm([0.3, 0.9, -0.2])
     base = np.radians(1.3)
@@ -278,7 +279,7 @@ def test_rotations_differ_by_the_angle_between_them(dtype):
     def pose(rad, ax=axis):
         return torch.tensor(make_se3(axis_angle_to_rot(ax * rad), [0.1, 0.0, 0.8]), dtype=dtype)[None]
 
-    for apart, differ in ((0.049, False), (0.051, True), (0.0, False), (120.0, True)):
+    for apart, differ in ((0.049, False), (0.051, True), (0.0, False), (120.0, True), (179.97, True)):
         got = rotations_differ(pose(base), pose(base + np.radians(apart)), 0.05)
         assert bool(got[0]) is differ, apart
     rng = np.random.default_rng(3)
