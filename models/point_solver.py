@@ -23,7 +23,6 @@ Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import torch
