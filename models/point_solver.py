@@ -126,6 +126,7 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
     diagonal = literal([[8 * i] for i in range(6)], Xh).long()  # H's diagonal in [H | g] flattened
     to_last = literal([[0.0, 0.0, 0.0, 1.0]], Xh)  # rho (B,3,1) -> (B,3,4) as the translation column
     dtype = Xh.dtype
+    solve_6x6 = cramer_solve if sampling.gathering() else scaled_solve
     for i in range(steps):
         Xt = P @ Xh  # (B,3,N)
         z = Xt[:, 2:3]
@@ -147,8 +148,7 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # damped diagonal (1 + damping) diag(H) + 1e-12; a stopped level (no points left, say an
         # empty scan) solves I xi = 0
-        solve = cramer_solve if sampling.gathering() else scaled_solve
-        xi = solve(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
+        xi = solve_6x6(Hg, Hg.flatten(1)[:, diagonal] * (1.0 + s.damping) + 1e-12) * active  # (B,6,1)
         P = so3_exp_small(xi[:, 3:]) @ P + xi[:, :3] @ to_last
         active = active * (xi.abs().amax(1, keepdim=True) >= s.stop_step).to(dtype)
     return P, active
