@@ -16,7 +16,7 @@ from __future__ import annotations
 import itertools
 import json
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -65,10 +65,22 @@ def record_pairs(model, drive: str) -> list[dict]:
     return pairs
 
 
-def score(drive: str, relatives: list[np.ndarray]) -> tuple[float, str]:
-    seq = KittiSequence.open(drive)
-    rel = np.array([change_frame(A, seq.calib.T_cam0_cam2) for A in relatives])
-    r = evaluate(read_poses(Path(drive) / "poses.txt"), Trajectory.from_poses(accumulate(rel)))
+@dataclass
+class Drive:
+    """What scoring a drive reads from its folder, read once for every rule."""
+    T_cam0_cam2: np.ndarray
+    gt: Trajectory
+    traffic: bool
+
+    @classmethod
+    def open(cls, drive: str) -> "Drive":
+        return cls(KittiSequence.open(drive).calib.T_cam0_cam2, read_poses(Path(drive) / "poses.txt"),
+                   has_traffic(drive))
+
+
+def score(drive: Drive, relatives: list[np.ndarray]) -> tuple[float, str]:
+    rel = np.array([change_frame(A, drive.T_cam0_cam2) for A in relatives])
+    r = evaluate(drive.gt, Trajectory.from_poses(accumulate(rel)))
     return (r.t_rel, "") if r.t_rel is not None else (r.ate, " ate")
 
 
@@ -92,16 +104,17 @@ def main(drives: list[str], checkpoint: Path) -> None:
             D = p["C"][:3, :3].T @ p["W"][:3, :3]
             p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
         print(f"recorded {Path(drive).name}: {len(pairs[drive])} pairs", flush=True)
-    classical = {d: score(d, [p["C"] for p in pairs[d]])[0] for d in drives}
+    info = {d: Drive.open(d) for d in drives}
+    classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in drives}
     rules = [("classical always", lambda p: False), ("weighted always", lambda p: True)]
     for g, r in itertools.product(GAINS, ROTATIONS):
         rules.append((f"pt_select {g} pt_select_rotation {r}",
                       lambda p, g=g, r=r: p["gain"] > g and p["rotation"] > r))
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
-        scores = {d: score(d, [p["W"] if keep(p) else p["C"] for p in pairs[d]]) for d in drives}
-        static = [scores[d][0] - classical[d] for d in drives if not has_traffic(d)]
-        cut = [1 - scores[d][0] / classical[d] for d in drives if has_traffic(d)]
+        scores = {d: score(info[d], [p["W"] if keep(p) else p["C"] for p in pairs[d]]) for d in drives}
+        static = [scores[d][0] - classical[d] for d in drives if not info[d].traffic]
+        cut = [1 - scores[d][0] / classical[d] for d in drives if info[d].traffic]
         summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
                   f"{sum(x < -1e-4 for x in static)}" if static else ""
         if cut:
