@@ -421,6 +421,56 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
             np.testing.assert_allclose(both, np.stack(alone), atol=1e-5)
 
 
+def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_path):
+    """`pt_select_rotation` as exported, in a dynamic batch of two pairs: with a confidence that
+    varies strongly over the image (the fixture's last confidence layer redrawn at std 3), the
+    weighted and classical solves of the two pairs differ in rotation by two different small
+    angles (numpy, float64, from the graph's own two poses). With the threshold between them, and
+    a gain threshold every pair passes, the pair whose rotations differ more keeps its weighted
+    pose and the other its classical one, alone and in the batch, in both graphs."""
+    import onnxruntime as ort
+
+    from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
+    from export.stages import flowpose_input_names
+    from models.checkpoint import build_model, load_checkpoint, save_checkpoint
+
+    model = build_model(load_checkpoint(points_model[0]))
+    torch.manual_seed(1)
+    with torch.no_grad():
+        model.point_pose.moving.net[-1].weight.normal_(std=3.0)
+        model.point_pose.moving.net[-1].bias.zero_()
+    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
+    names = flowpose_input_names(model)
+    one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
+    other = dict(one, init_pose=make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.1, 0.0, 1.0])[None].astype(np.float32),
+                 **{n: np.roll(one[n], 1, -1) for n in names if n.startswith(("stack2_p", "image1_p"))})
+    batch = {n: np.concatenate([one[n], other[n]]) for n in names}
+
+    def poses(solver, graph, feeds):
+        d = tmp_path / "_".join(f"{k}{v}" for k, v in solver.items())
+        if not d.exists():
+            export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=d, dynamic_batch=True, solver=solver))
+        sess = ort.InferenceSession(str(d / graph), providers=["CPUExecutionProvider"])
+        return sess.run(["matrix", "start_next"], feeds)
+
+    def angle(A, B):  # degrees, from the sine: the trace cannot resolve hundredths of a degree
+        D = A[:3, :3].astype(np.float64).T @ B[:3, :3].astype(np.float64)
+        return np.degrees(np.arcsin(0.5 * np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])))
+
+    for graph in ("flowpose.onnx", "flowpose.onnxruntime.onnx"):  # GridSample's and onnxruntime's
+        classical, weighted = poses({"pt_select": 0.999}, graph, batch)  # both solves of each pair
+        angles = np.array([angle(classical[i], weighted[i]) for i in range(2)])
+        assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
+        gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod()))}
+        kept, start = poses({"pt_select": 1e-6}, graph, batch)
+        np.testing.assert_allclose(kept, weighted, atol=1e-5)  # the gain alone keeps both weighted poses
+        want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
+        for feeds, rows in ((batch, slice(0, 2)), (one, slice(0, 1)), (other, slice(1, 2))):
+            kept, start = poses(gate, graph, feeds)
+            np.testing.assert_allclose(kept, want[rows], atol=1e-5)
+            np.testing.assert_allclose(start, weighted[rows], atol=1e-5)  # the next start is weighted anyway
+
+
 def test_direct_method_is_the_models_classical_mode(points_model):
     """`--method direct` takes the point selection and solver settings of the model it stands for."""
     from d3lvo_deploy.manifest import load_manifest
