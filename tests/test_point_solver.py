@@ -422,53 +422,58 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
 
 
 def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_path):
-    """`pt_select_rotation` as exported, in a dynamic batch of two pairs: with a confidence that
-    varies strongly over the image (the fixture's last confidence layer redrawn at std 3), the
-    weighted and classical solves of the two pairs differ in rotation by two different small
-    angles (numpy, float64, from the graph's own two poses). With the threshold between them, and
-    a gain threshold every pair passes, the pair whose rotations differ more keeps its weighted
-    pose and the other its classical one, alone and in the batch, in both graphs."""
+    """`pt_select_rotation` as exported, in a dynamic batch of two pairs, against torch. With a
+    confidence that varies strongly over the image (the fixture's last confidence layer redrawn at
+    std 3), torch's weighted and classical poses of the two pairs differ in rotation by two
+    different small angles (cv2.Rodrigues, float64), and the gain alone keeps both weighted poses.
+    With the rotation threshold between the two angles, the exported graphs keep the weighted pose
+    of the pair whose rotations differ more and the classical pose of the other, alone and in the
+    batch, in both graphs, and the next start is the weighted pose either way."""
+    from dataclasses import replace
+
     import onnxruntime as ort
 
     from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
-    from export.stages import flowpose_input_names
+    from export.stages import FlowPoseStage, flowpose_input_names
     from models.checkpoint import build_model, load_checkpoint, save_checkpoint
+    from models.d3lvo import D3LVO
 
     model = build_model(load_checkpoint(points_model[0]))
     torch.manual_seed(1)
     with torch.no_grad():
         model.point_pose.moving.net[-1].weight.normal_(std=3.0)
         model.point_pose.moving.net[-1].bias.zero_()
-    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
     names = flowpose_input_names(model)
     one = {n: t.numpy() for n, t in zip(names, _sample_inputs(model, model.cfg.height, model.cfg.width)["flowpose"])}
     other = dict(one, init_pose=make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.1, 0.0, 1.0])[None].astype(np.float32),
                  **{n: np.roll(one[n], 1, -1) for n in names if n.startswith(("stack2_p", "image1_p"))})
     batch = {n: np.concatenate([one[n], other[n]]) for n in names}
 
-    def poses(solver, graph, feeds):
-        d = tmp_path / "_".join(f"{k}{v}" for k, v in solver.items())
-        if not d.exists():
-            export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=d, dynamic_batch=True, solver=solver))
-        sess = ort.InferenceSession(str(d / graph), providers=["CPUExecutionProvider"])
-        return sess.run(["matrix", "start_next"], feeds)
+    def torch_poses(**solver):  # (kept, next start) of both pairs, the same weights under these settings
+        m = D3LVO(replace(model.cfg, **solver)).eval()
+        m.load_state_dict(model.state_dict())
+        stage = FlowPoseStage(m)
+        with torch.no_grad():
+            out = dict(zip(stage.output_names, stage(*(torch.from_numpy(batch[n]) for n in names))))
+        return out["matrix"].double().numpy(), out["start_next"].double().numpy()
 
-    def angle(A, B):  # degrees, from the sine: the trace cannot resolve hundredths of a degree
-        D = A[:3, :3].astype(np.float64).T @ B[:3, :3].astype(np.float64)
-        return np.degrees(np.arcsin(0.5 * np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])))
-
+    classical, weighted = torch_poses(pt_select=0.999)
+    kept, _ = torch_poses(pt_select=1e-6)
+    np.testing.assert_allclose(kept, weighted, atol=1e-12)  # the gain alone keeps both weighted poses
+    assert (np.abs(weighted - classical).max(axis=(1, 2)) > 1e-4).all()  # far beyond the tolerance below
+    angles = np.array([np.degrees(np.linalg.norm(cv2.Rodrigues(classical[i, :3, :3].T @ weighted[i, :3, :3])[0]))
+                       for i in range(2)])
+    assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
+    gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod()))}
+    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
+    export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=tmp_path / "gate", dynamic_batch=True, solver=gate))
+    want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
     for graph in ("flowpose.onnx", "flowpose.onnxruntime.onnx"):  # GridSample's and onnxruntime's
-        classical, weighted = poses({"pt_select": 0.999}, graph, batch)  # both solves of each pair
-        angles = np.array([angle(classical[i], weighted[i]) for i in range(2)])
-        assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
-        gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod()))}
-        kept, start = poses({"pt_select": 1e-6}, graph, batch)
-        np.testing.assert_allclose(kept, weighted, atol=1e-5)  # the gain alone keeps both weighted poses
-        want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
+        sess = ort.InferenceSession(str(tmp_path / "gate" / graph), providers=["CPUExecutionProvider"])
         for feeds, rows in ((batch, slice(0, 2)), (one, slice(0, 1)), (other, slice(1, 2))):
-            kept, start = poses(gate, graph, feeds)
+            kept, start = sess.run(["matrix", "start_next"], feeds)
             np.testing.assert_allclose(kept, want[rows], atol=1e-5)
-            np.testing.assert_allclose(start, weighted[rows], atol=1e-5)  # the next start is weighted anyway
+            np.testing.assert_allclose(start, weighted[rows], atol=1e-5)
 
 
 def test_direct_method_is_the_models_classical_mode(points_model):
