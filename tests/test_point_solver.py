@@ -387,14 +387,15 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
 
 
-@pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 0), (0.01, 2), (0.999, 0)])
+@pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 0), (0.01, 2)])
 def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select, refine):
     """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
     of two pairs (different start motions, so their levels stop at different blocks) gives each
     pair the pose it gets alone. With `pt_select` each pair is solved twice (weighted and
     classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's (the
-    refinement's check of the solved pose, `pt_refine`, too; with pt_select 0.999 `matrix` is
-    practically always the classical rows' pose and `start_next` the weighted rows')."""
+    refinement's check of the solved pose, `pt_refine`, too). A batch whose pairs keep different
+    solves, one the weighted and one the classical, is
+    `test_rotation_gate_in_the_exported_graphs_pair_by_pair`."""
     import onnxruntime as ort
 
     from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
