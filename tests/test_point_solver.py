@@ -11,7 +11,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry  # noqa: E402
-from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, rotation_angle, se3_inv  # noqa: E402
+from d3lvo_deploy.geometry import (axis_angle_to_rot, make_se3, rotation_angle, rotation_angle_precise,  # noqa: E402
+                                   se3_inv)
 from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
                                  textured_points)
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
@@ -426,7 +427,8 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     """`pt_select_rotation` as exported, in a dynamic batch of two pairs, against torch. With a
     confidence that varies strongly over the image (the fixture's last confidence layer redrawn at
     std 3), torch's weighted and classical poses of the two pairs differ in rotation by two
-    different small angles (cv2.Rodrigues, float64), and the gain alone keeps both weighted poses.
+    different small angles (`geometry.rotation_angle_precise`, float64), and the gain alone keeps
+    both weighted poses.
     With the rotation threshold between the two angles, the exported graphs keep the weighted pose
     of the pair whose rotations differ more and the classical pose of the other, alone and in the
     batch, in both graphs, and the next start is the weighted pose either way."""
@@ -462,8 +464,7 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     kept, _ = torch_poses(pt_select=1e-6)
     np.testing.assert_allclose(kept, weighted, atol=1e-12)  # the gain alone keeps both weighted poses
     assert (np.abs(weighted - classical).max(axis=(1, 2)) > 1e-4).all()  # far beyond the tolerance below
-    angles = np.array([np.degrees(np.linalg.norm(cv2.Rodrigues(classical[i, :3, :3].T @ weighted[i, :3, :3])[0]))
-                       for i in range(2)])
+    angles = np.degrees(rotation_angle_precise(classical[:, :3, :3].transpose(0, 2, 1) @ weighted[:, :3, :3]))
     assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
     gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod()))}
     save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
