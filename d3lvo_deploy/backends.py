@@ -53,7 +53,7 @@ def resolve_providers(name: str) -> list[str]:
 @dataclass(frozen=True)
 class SessionConfig:
     provider: str = "cpu"
-    threads: int = 0  # 0: the engine decides (all physical cores)
+    threads: int = 0  # 0: OMP_NUM_THREADS where set, else the engine decides (all physical cores)
     optimization: str = "all"
     profile_dir: str | None = None
     # ORT's pool threads busy-wait between ops rather than sleep: a stage of thousands of small ops
@@ -63,6 +63,18 @@ class SessionConfig:
     spinning: bool = True
     backend: str = "onnxruntime"
     ov_precision: str = "f32"
+
+    @property
+    def engine_threads(self) -> int:
+        """The thread count handed to the engine. 0 reads OMP_NUM_THREADS, as torch and numpy do:
+        it is how a container or several processes sharing a machine ask each for fewer threads
+        (two threads per process on two cores spend their time waiting for each other)."""
+        if self.threads:
+            return self.threads
+        try:
+            return max(0, int(os.environ.get("OMP_NUM_THREADS", "0")))
+        except ValueError:
+            return 0
 
     def resolved(self) -> "SessionConfig":
         """The same settings with "auto" replaced by the engine it picks here."""
@@ -127,7 +139,7 @@ def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) 
 
 def _marker(sc: SessionConfig, stage: str, sha256: str) -> str:
     precision = sc.ov_precision if stage in REDUCED_PRECISION_STAGES else "f32"
-    return f"{sha256[:24]}-{precision}-t{sc.threads}.compiled"
+    return f"{sha256[:24]}-{precision}-t{sc.engine_threads}.compiled"
 
 
 def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
@@ -163,7 +175,7 @@ class OrtSession:
             raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
         so = ort.SessionOptions()
         so.graph_optimization_level = OPT_LEVELS[sc.optimization]
-        so.intra_op_num_threads = sc.threads
+        so.intra_op_num_threads = sc.engine_threads
         so.inter_op_num_threads = 1
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         so.log_severity_level = 3  # errors only: optimiser notes (e.g. fp16 constant folding) are not user news
@@ -233,8 +245,8 @@ class OpenVinoSession:
             OpenVinoSession._core = ov.Core()
         precision = sc.ov_precision if stage in REDUCED_PRECISION_STAGES else "f32"
         config = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1", "INFERENCE_PRECISION_HINT": precision}
-        if sc.threads:
-            config["INFERENCE_NUM_THREADS"] = str(sc.threads)
+        if sc.engine_threads:
+            config["INFERENCE_NUM_THREADS"] = str(sc.engine_threads)
         cache = openvino_cache_dir(ov.__version__)
         if cache is not None:
             config["CACHE_DIR"] = str(cache)
@@ -272,7 +284,7 @@ def ort_cache_file(sc: SessionConfig, stage: str, expected: dict | None) -> Path
     if sc.optimization != "all" or sc.profile_dir or not expected or not expected.get("sha256"):
         return None
     folder = engine_cache_dir("onnxruntime", ort.__version__)
-    return None if folder is None else folder / f"{stage}-{expected['sha256'][:24]}-t{sc.threads}.onnx"
+    return None if folder is None else folder / f"{stage}-{expected['sha256'][:24]}-t{sc.engine_threads}.onnx"
 
 
 def openvino_cache_dir(version: str) -> Path | None:

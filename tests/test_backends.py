@@ -202,7 +202,7 @@ def test_auto_keeps_a_short_run_off_an_uncompiled_openvino(small_model, tmp_path
     # a short run stays on onnxruntime: even a cached OpenVINO loads slower than it
     assert choose_engine(auto, manifest, 20)[0].backend == "onnxruntime"
     # threads are part of what OpenVINO compiled: another count is another compile
-    assert choose_engine(SessionConfig(backend="auto", threads=1), manifest,
+    assert choose_engine(SessionConfig(backend="auto", threads=SessionConfig().engine_threads + 1), manifest,
                          AUTO_MIN_FRAMES_CACHED)[0].backend == "onnxruntime"
     # an OpenVINO precision asks for OpenVINO
     assert choose_engine(SessionConfig(backend="auto", ov_precision="bf16"), manifest, 20)[0].backend == "openvino"
@@ -256,6 +256,21 @@ def test_every_stage_runs_on_the_threads_asked_for():
     for name in ov_m.sessions:
         assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == 2, name
         assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == 2, name
+
+
+def test_threads_0_reads_omp_num_threads(small_model, monkeypatch):
+    """--threads 0 (the default) takes OMP_NUM_THREADS where set, as torch does, and leaves the
+    count to the engine where not (onnxruntime's 0); a number asked for wins over the variable."""
+    _, onnx_dir = small_model
+
+    def ort_threads(sc: SessionConfig) -> int:
+        return StageModel(onnx_dir, sc).sessions["encoder"].sess.get_session_options().intra_op_num_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert ort_threads(SessionConfig(backend="onnxruntime")) == 1
+    assert ort_threads(SessionConfig(backend="onnxruntime", threads=2)) == 2
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert ort_threads(SessionConfig(backend="onnxruntime")) == 0
 
 
 def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
