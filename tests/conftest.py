@@ -12,6 +12,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 
+# Under pytest-xdist each worker already takes a core: torch's, onnxruntime's and OpenVINO's own
+# thread per core on top would make two threads fight over each core (on 2 cores they cost a third
+# of the suite's CPU time). One thread per worker: torch reads OMP_NUM_THREADS when first imported,
+# the engines when `--threads` is 0 (SessionConfig.engine_threads). Set before any test module
+# imports torch; a thread count a test asks for still applies.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 
 def shared_path(*parts: str) -> Path:
     """A file of ../shared/data; the test skips where it is absent, and fails instead where
