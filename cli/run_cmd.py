@@ -271,7 +271,10 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, None)
         return
     if method == "d3lvo":
-        console.print(f"model {model_dir} on {engine_name} ({why})", highlight=False)
+        # a thread count the user did not type on this command line is named, with where it came from
+        n = sc.engine_threads
+        threads = f"; {n} thread{'s' * (n != 1)} from OMP_NUM_THREADS" if not sc.threads and n else ""
+        console.print(f"model {model_dir} on {engine_name} ({why}{threads})", highlight=False)
     console.print(f"{seq.format_name} recording {seq.root}: {len(seq)} frames; "
                   f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:

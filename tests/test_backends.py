@@ -273,6 +273,17 @@ def test_threads_0_reads_omp_num_threads(small_model, monkeypatch):
     assert ort_threads(SessionConfig(backend="onnxruntime")) == 0
 
 
+def test_run_names_threads_taken_from_omp_num_threads(small_model, small_synth, tmp_path, monkeypatch):
+    """A thread count the command line did not give is said, with where it came from."""
+    _, onnx_dir = small_model
+    args = ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--backend", "onnxruntime"]
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    r = runner.invoke(app, [*args, "--out", str(tmp_path / "a.txt")])
+    assert r.exit_code == 0 and "1 thread from OMP_NUM_THREADS" in r.output, r.output
+    r = runner.invoke(app, [*args, "--threads", "2", "--out", str(tmp_path / "b.txt")])
+    assert r.exit_code == 0 and "OMP_NUM_THREADS" not in r.output, r.output
+
+
 def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
     """The pool threads spin between the ops of a run (SessionConfig.spinning) but stop when it
     returns: numpy's projection between two stages must have the cores. Measured as this process's
