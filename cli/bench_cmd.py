@@ -231,7 +231,7 @@ def bench_command(
     res = {
         "model": str(onnx), "timed": what, "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
         "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
-        "threads": threads, "runs": runs, "frames_from": str(seq.root),
+        "threads": SessionConfig(threads=threads).engine_threads, "runs": runs, "frames_from": str(seq.root),
         "ov_precision": ov_precision if "openvino" in engines else None,
         "cpu": {"model": cpu.model, "cores": cpu.logical_cores, "isa": list(cpu.isa)},
         "gemm_peak_gflops": peak, "stage_gflops": gflops,

@@ -256,7 +256,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         record = dict(path=seq.root.resolve(), fmt=seq.format_name, calib=absolute(calib), image_topic=image_topic,
                       cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt),
                       onnx=absolute(onnx), method=method,
-                      start=start, end=end, provider=provider, threads=threads,
+                      start=start, end=end, provider=provider, threads=sc.engine_threads,  # the count used
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                       optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)
         _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
@@ -273,8 +273,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if method == "d3lvo":
         # a thread count the user did not type on this command line is named, with where it came from
         n = sc.engine_threads
-        threads = f"; {n} thread{'s' * (n != 1)} from OMP_NUM_THREADS" if not sc.threads and n else ""
-        console.print(f"model {model_dir} on {engine_name} ({why}{threads})", highlight=False)
+        from_env = f"; {n} thread{'s' * (n != 1)} from OMP_NUM_THREADS" if not sc.threads and n else ""
+        console.print(f"model {model_dir} on {engine_name} ({why}{from_env})", highlight=False)
     console.print(f"{seq.format_name} recording {seq.root}: {len(seq)} frames; "
                   f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:

@@ -71,8 +71,8 @@ class SessionConfig:
         (two threads per process on two cores spend their time waiting for each other)."""
         if self.threads:
             return self.threads
-        try:
-            return max(0, int(os.environ.get("OMP_NUM_THREADS", "0")))
+        try:  # OpenMP allows a list per nesting level ("4,2"): the outer level's count
+            return max(0, int(os.environ.get("OMP_NUM_THREADS", "0").split(",")[0]))
         except ValueError:
             return 0
 

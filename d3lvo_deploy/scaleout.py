@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator
 
@@ -165,8 +165,9 @@ def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, en
         raise D3LVOInputError(None, "--workers must be at least 1")
     model_dir = str(Path(model_dir).resolve())
     StageModel(model_dir)  # verify the model once, here, before fanning out
-    if sc is None:  # split the machine's cores between the workers
-        sc = SessionConfig(threads=max(1, (os.cpu_count() or 1) // workers))
+    sc = sc or SessionConfig()
+    if not sc.threads:  # OMP_NUM_THREADS each where set, else the machine's cores split between the workers
+        sc = replace(sc, threads=sc.engine_threads or max(1, (os.cpu_count() or 1) // workers))
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:

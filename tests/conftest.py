@@ -12,13 +12,16 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 
-# Under pytest-xdist each worker already takes a core: torch's, onnxruntime's and OpenVINO's own
-# thread per core on top would make two threads fight over each core (on 2 cores they cost a third
-# of the suite's CPU time). One thread per worker: torch reads OMP_NUM_THREADS when first imported,
-# the engines when `--threads` is 0 (SessionConfig.engine_threads). Set before any test module
-# imports torch; a thread count a test asks for still applies.
-if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+# Under pytest-xdist the workers share the cores: torch's, onnxruntime's and OpenVINO's own thread
+# per core in every worker would make threads fight over each core (on 2 cores with 2 workers that
+# cost a third of the suite's CPU time). Each worker gets its share of the cores, unless
+# OMP_NUM_THREADS is set already: torch reads it when first imported, the engines when `--threads`
+# is 0 (SessionConfig.engine_threads). Set before any test module imports torch; a thread count a
+# test asks for still applies.
+_workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _workers > 1:
+    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _cores // _workers)))
 
 
 def shared_path(*parts: str) -> Path:

@@ -266,9 +266,19 @@ def test_threads_0_reads_omp_num_threads(small_model, monkeypatch):
     def ort_threads(sc: SessionConfig) -> int:
         return StageModel(onnx_dir, sc).sessions["encoder"].sess.get_session_options().intra_op_num_threads
 
+    from d3lvo_deploy.backends import ort_cache_file
+
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     assert ort_threads(SessionConfig(backend="onnxruntime")) == 1
     assert ort_threads(SessionConfig(backend="onnxruntime", threads=2)) == 2
+    if importlib.util.find_spec("openvino"):
+        ov_m = StageModel(onnx_dir, SessionConfig(backend="openvino"))
+        assert int(ov_m.sessions["encoder"].compiled.get_property("INFERENCE_NUM_THREADS")) == 1
+    # the optimised graph kept for one count is not loaded for another
+    stage = {"sha256": "ab" * 32}
+    one = ort_cache_file(SessionConfig(), "encoder", stage)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3,1")  # OpenMP's list form: the outer level's count
+    assert SessionConfig().engine_threads == 3 and ort_cache_file(SessionConfig(), "encoder", stage) != one
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert ort_threads(SessionConfig(backend="onnxruntime")) == 0
 
