@@ -149,7 +149,7 @@ class PointPose(nn.Module):
             if self.cfg.pt_select_rotation > 0:
                 keep = keep & rotations_differ(levels[-1], classical, self.cfg.pt_select_rotation)
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
-            out["consensus_gain"] = gain
+            out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:
             levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask)
         out["point_weights"] = weight

@@ -43,25 +43,15 @@ def record_pairs(model, drive: str) -> list[dict]:
     def recording(self, *args):
         out = forward(self, *args)
         if "consensus_gain" in out:
-            classical = solve_rows[-1]
             pairs.append(dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
-                              C=classical))
+                              C=out["classical"][0].double().numpy()))
         return out
 
-    solve_rows: list[np.ndarray] = []
-    solve = pose_points.solve
-
-    def solving(*args, **kwargs):
-        levels = solve(*args, **kwargs)
-        if levels[-1].shape[0] == 2:  # rows 0 and 1: the pair's weighted and classical solve
-            solve_rows.append(levels[-1][1].double().numpy())
-        return levels
-
-    pose_points.PointPose.forward, pose_points.solve = recording, solving
+    pose_points.PointPose.forward = recording
     try:
         predict_sequence(model, drive)
     finally:
-        pose_points.PointPose.forward, pose_points.solve = forward, solve
+        pose_points.PointPose.forward = forward
     return pairs
 
 
