@@ -30,7 +30,7 @@ from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.projection import View, sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
-from d3lvo_deploy.synth.generator import decode_kitti_flow
+from d3lvo_deploy.synth.generator import decode_kitti_flow, drive_traffic
 
 from .augment import flip_images, flip_pose, roll_pose, rotate_images
 from .config import D3LVOConfig
@@ -85,8 +85,7 @@ class FrameLoader:
         self.view: View = self.pre.view
         self.K = self.pre.K
         # a synthetic drive rendered without traffic has no motion_2/: nothing in it moves
-        meta = seq.root / "synth.json"
-        self.static_synthetic = meta.is_file() and not json.loads(meta.read_text()).get("traffic", 0)
+        self.static_synthetic = drive_traffic(seq.root) == 0
         self.points = point_config(cfg.to_dict())
         self.cache = None if cache is None else Path(cache) / self._cache_key()
 

@@ -14,7 +14,6 @@ the mean and the smallest reduction against it.
 from __future__ import annotations
 
 import itertools
-import json
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -27,6 +26,7 @@ from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.geometry import accumulate, change_frame, rotation_angle_precise
 from d3lvo_deploy.poses import Trajectory, read_poses
 from d3lvo_deploy.sequence import KittiSequence
+from d3lvo_deploy.synth.generator import drive_traffic
 from models import pose_points
 from models.checkpoint import build_model, load_checkpoint
 from models.predict import predict_sequence
@@ -65,18 +65,13 @@ class Drive:
     @classmethod
     def open(cls, drive: str) -> "Drive":
         return cls(KittiSequence.open(drive).calib.T_cam0_cam2, read_poses(Path(drive) / "poses.txt"),
-                   has_traffic(drive))
+                   (drive_traffic(drive) or 0) > 0)
 
 
 def score(drive: Drive, relatives: list[np.ndarray]) -> tuple[float, str]:
     rel = np.array([change_frame(A, drive.T_cam0_cam2) for A in relatives])
     r = evaluate(drive.gt, Trajectory.from_poses(accumulate(rel)))
     return (r.t_rel, "") if r.t_rel is not None else (r.ate, " ate")
-
-
-def has_traffic(drive: str) -> bool:
-    meta = Path(drive) / "synth.json"
-    return meta.is_file() and float(json.loads(meta.read_text()).get("traffic", 0) or 0) > 0
 
 
 def main(drives: list[str], checkpoint: Path) -> None:

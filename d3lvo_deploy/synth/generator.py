@@ -74,6 +74,13 @@ class SynthConfig:
         return d
 
 
+def drive_traffic(folder: str | Path) -> float | None:
+    """Moving vehicles per 100 m a synthetic drive was rendered with (its synth.json); None for a
+    folder `generate` did not write, such as real data."""
+    meta = Path(folder) / "synth.json"
+    return float(json.loads(meta.read_text()).get("traffic", 0) or 0) if meta.is_file() else None
+
+
 def make_poses(cfg: SynthConfig) -> np.ndarray:
     if cfg.motion_from:
         return replay_gt(cfg.motion_from, cfg.frames, cfg.motion_start)
