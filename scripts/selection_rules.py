@@ -8,7 +8,9 @@ kept, so every rule's trajectory is the recorded poses chosen pair by pair: the 
 scored without running the network again. Prints, per rule, each drive's t_rel % (ATE m, marked
 `ate`, for drives under 100 m), and the sums the choice reads: on static drives the difference
 to the classical pose kept always, on drives with traffic (a `synth.json` with traffic above 0)
-the mean and the smallest reduction against it.
+the mean and the smallest reduction against it. Beside the grid, at the shipped thresholds, two
+rules that do not ship: a cap on the share of frame t-1's points the network distrusts, and the
+test passed on the previous pair too (a mover stays in view for several pairs).
 """
 
 from __future__ import annotations
@@ -33,10 +35,20 @@ from models.predict import predict_sequence
 
 GAINS = (0.003, 0.005, 0.0075, 0.01, 0.02)
 ROTATIONS = (0.0, 0.04, 0.05, 0.06, 0.08, 0.1)  # degrees; 0: off
+SHIPPED = (0.005, 0.05)
+SHARES = (0.8, 0.7, 0.6, 0.5)  # the most of frame t-1's points the network may distrust
+
+
+def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
+    """The share of frame t-1's points (mask above 0) the network distrusts (weight under 0.5,
+    where `consensus_gain`'s trusted points begin): batch row 0."""
+    valid = (mask[0] > 0).to(weight.dtype)
+    return float((valid * (weight[0] < 0.5).to(weight.dtype)).sum() / valid.sum().clamp(min=1.0))
 
 
 def record_pairs(model, drive: str) -> list[dict]:
-    """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1)."""
+    """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1), the
+    share of the points the network distrusts."""
     pairs: list[dict] = []
     forward = pose_points.PointPose.forward
 
@@ -44,7 +56,8 @@ def record_pairs(model, drive: str) -> list[dict]:
         out = forward(self, *args)
         if "consensus_gain" in out:
             pairs.append(dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
-                              C=out["classical"][0].double().numpy()))
+                              C=out["classical"][0].double().numpy(),
+                              share=distrusted_share(out["point_weights"], args[-1]["point_mask1"])))
         return out
 
     pose_points.PointPose.forward = recording
@@ -91,20 +104,28 @@ def main(drives: list[str], checkpoint: Path) -> None:
         print(f"recorded {Path(drive).name}: {len(pairs[drive])} pairs", flush=True)
     info = {d: Drive.open(d) for d in drives}
     classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in drives}
-    rules = [("classical always", lambda p: False), ("weighted always", lambda p: True)]
-    for g, r in itertools.product(GAINS, ROTATIONS):
-        rules.append((f"pt_select {g} pt_select_rotation {r}",
-                      lambda p, g=g, r=r: p["gain"] > g and p["rotation"] > r))
+
+    def test(g: float, r: float):
+        return lambda ps, i: ps[i]["gain"] > g and ps[i]["rotation"] > r
+
+    rules = [("classical always", lambda ps, i: False), ("weighted always", lambda ps, i: True)]
+    rules += [(f"pt_select {g} pt_select_rotation {r}", test(g, r)) for g, r in itertools.product(GAINS, ROTATIONS)]
+    shipped = test(*SHIPPED)
+    rules += [(f"shipped, distrusted share <= {f}", lambda ps, i, f=f: shipped(ps, i) and ps[i]["share"] <= f)
+              for f in SHARES]
+    rules.append(("shipped, passed on the last pair too",
+                  lambda ps, i: shipped(ps, i) and i > 0 and shipped(ps, i - 1)))
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
-        scores = {d: score(info[d], [p["W"] if keep(p) else p["C"] for p in pairs[d]]) for d in drives}
+        scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
+                  for d in drives}
         static = [scores[d][0] - classical[d] for d in drives if not info[d].traffic]
         cut = [1 - scores[d][0] / classical[d] for d in drives if info[d].traffic]
         summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
                   f"{sum(x < -1e-4 for x in static)}" if static else ""
         if cut:
             summary += f"; traffic: cut mean {100 * np.mean(cut):.1f} %, smallest {100 * min(cut):.1f} %"
-        print(f"{name:40s} {summary} | " + " ".join(f"{s:.3f}{unit}" for s, unit in scores.values()), flush=True)
+        print(f"{name:42s} {summary} | " + " ".join(f"{s:.3f}{unit}" for s, unit in scores.values()), flush=True)
 
 
 if __name__ == "__main__":

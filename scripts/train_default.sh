@@ -244,5 +244,16 @@ for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
       --overwrite
   done
 done
-# the selection's two thresholds, on the fourteen validation drives (docs/model-card.md)
+# the selection's two thresholds, on those fourteen validation drives and ten more static ones
+# (docs/model-card.md)
+for spec in "614 01 300" "615 03 500" "616 04 50" "617 06 600" "618 07 800" "619 02 3500" "620 00 4000" \
+            "621 05 2400" "622 08 1200" "623 00 200"; do
+  read -r seed sq start <<< "$spec"
+  [ -f "$OUT/data/val_static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$seed" \
+    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+done
 .venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+# the same rules on the two held-out drives where the network loses to its classical mode (not used
+# for the choice): the demo's drive and seed 228
+[ -f "$OUT/data/demo_909/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/demo_909" --frames 220 --seed 909 --size "$SIZE"
+.venv/bin/python scripts/selection_rules.py "$OUT/data/demo_909" "$OUT/data/static_228"
