@@ -76,6 +76,11 @@ OMP_NUM_THREADS=2 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.p
 INIT=${INIT:-checkpoints/default_step2500.pt}
 S=(--size "$SIZE" --sensor-effects)
 drive() { [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" "${S[@]}"; }
+# a static drive of 200 frames, no sensor effects: static_drive NAME SEED KITTI_SEQ START
+static_drive() {
+  [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" --frames 200 --seed "$2" --size "$SIZE" \
+    --motion-from "$GT/$3.txt" --motion-start "$4"
+}
 drive tr_00 --frames 120 --seed 500 --motion-from "$GT/00.txt" --motion-start 100 --traffic 4
 drive tr_02 --frames 120 --seed 501 --motion-from "$GT/02.txt" --motion-start 300 --traffic 6
 drive tr_05 --frames 120 --seed 502 --motion-from "$GT/05.txt" --motion-start 500 --traffic 3
@@ -146,8 +151,7 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 for spec in "219 09 800" "220 10 600" "221 09 400" "222 10 0" "223 09 1300" "224 10 900" "225 09 100" \
             "226 10 200" "227 09 500" "228 10 400" "229 09 1000" "230 10 700" "231 09 1200"; do
   read -r seed sq start <<< "$spec"
-  [ -f "$OUT/data/static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/static_$seed" --frames 200 \
-    --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+  static_drive "static_$seed" "$seed" "$sq" "$start"
 done
 drive traffic_309 --frames 200 --seed 309 --motion-from "$GT/09.txt" --motion-start 200 --traffic 3
 drive traffic_310 --frames 200 --seed 310 --motion-from "$GT/10.txt" --motion-start 300 --traffic 5
@@ -206,8 +210,7 @@ done
 drive val_traffic_2 --frames 200 --seed 605 --motion-from "$GT/02.txt" --motion-start 1500 --traffic 6
 for spec in "602 03 300" "603 07 500" "604 06 200"; do
   read -r seed sq start <<< "$spec"
-  [ -f "$OUT/data/val_static_$((seed - 600))/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$((seed - 600))" \
-    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+  static_drive "val_static_$((seed - 600))" "$seed" "$sq" "$start"
 done
 for p in 1 2 4 8; do
   "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/power_$p" --set pt_conf_power=$p $SEL01
@@ -223,8 +226,7 @@ drive val_traffic_612 --frames 200 --seed 612 --motion-from "$GT/08.txt" --motio
 drive val_traffic_613 --frames 200 --seed 613 --motion-from "$GT/00.txt" --motion-start 1500 --traffic 3
 for spec in "608 00 1000" "609 02 2000" "610 05 1200" "611 08 3000"; do
   read -r seed sq start <<< "$spec"
-  [ -f "$OUT/data/val_static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$seed" \
-    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+  static_drive "val_static_$seed" "$seed" "$sq" "$start"
 done
 NEW=(val_traffic_612 val_traffic_613 val_static_608 val_static_609 val_static_610 val_static_611)
 VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4 "${NEW[@]}")
@@ -249,8 +251,7 @@ done
 for spec in "614 01 300" "615 03 500" "616 04 50" "617 06 600" "618 07 800" "619 02 3500" "620 00 4000" \
             "621 05 2400" "622 08 1200" "623 00 200"; do
   read -r seed sq start <<< "$spec"
-  [ -f "$OUT/data/val_static_$seed/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static_$seed" \
-    --frames 200 --seed "$seed" --size "$SIZE" --motion-from "$GT/$sq.txt" --motion-start "$start"
+  static_drive "val_static_$seed" "$seed" "$sq" "$start"
 done
 .venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 # the same rules on the two held-out drives where the network loses to its classical mode (not used
