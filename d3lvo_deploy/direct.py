@@ -5,7 +5,7 @@ learning: the LiDAR returns of frame t-1 that land on image texture (an evenly s
 most, `points.py`) are 3D points (no pooling to cells, no resizing of the image); frame t's grey image, at its full resolution and two
 pyrDown levels, is sampled where the points project, and Gauss-Newton on SE(3) minimises the
 photometric difference, coarse to fine, up to `iterations` steps per level with an early stop,
-from a constant-velocity start. The robust weight is Huber's with its threshold re-estimated
+from a constant-velocity start (the first pair from several, `cold_start`). The robust weight is Huber's with its threshold re-estimated
 from the residuals every third step (1.345 x the MAD scale), so it follows the scene instead of a
 fixed threshold that suits one exposure and one amount of noise.
 
@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from .calib import Calib
+from .cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
@@ -50,6 +51,8 @@ class DirectConfig:
     # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->
     # 0.17 %) and cost 0.02-0.06 points on the four static, evenly lit ones
     affine_brightness: bool = False
+    # the first pair, which has no previous motion, from several guesses (`cold_start`)
+    cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
 
     @classmethod
     def of_model(cls, model_config: dict) -> "DirectConfig":
@@ -177,6 +180,7 @@ class DirectOdometry:
         self._prev: _Frame | None = None
         self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
         self.motion2 = np.eye(4)  # last image_2 motion: the constant-velocity start
+        self.cold = True  # no previous motion yet: the first pair starts from `cold_start`'s guesses
         self.frames = 0
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> _Frame:
@@ -194,19 +198,29 @@ class DirectOdometry:
         t0 = time.perf_counter()
         A = np.eye(4)
         if self._prev is not None and len(self._prev.points):
-            M = se3_inv(self.motion2)  # constant velocity
-            X = self._prev.points
-            for lvl in reversed(range(self.cfg.levels)):
-                prev_lvl = self._prev.levels[lvl]
-                ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
-                M = align_level(M, X, ref, cur.levels[lvl], self.cfg.iterations[self.cfg.levels - 1 - lvl], self.cfg)
-            if self.cfg.refine:
-                M = align_level(M, X, ref, cur.levels[0], self.cfg.refine, self.cfg)
-            A = se3_inv(M)
-            self.motion2 = A
+            X, finest = self._prev.points, self._prev.levels[0]
+            if self.cold:
+                A, _ = best_start(candidate_starts(self.cfg.cold_start), lambda A0: self.track(cur, A0),
+                                  lambda A: A, lambda A: photometric_cost(finest.stack[..., 0], X,
+                                                                          cur.levels[0].stack[..., 0], finest.K, A))
+            else:
+                A = self.track(cur, self.motion2)  # constant velocity
+            self.motion2, self.cold = A, False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = cur
         return A
+
+    def track(self, cur: _Frame, start: np.ndarray) -> np.ndarray:
+        """The image_2 motion A (frame t in t-1) that aligns frame t-1's points with frame t,
+        coarse to fine from `start`."""
+        M, X = se3_inv(start), self._prev.points
+        for lvl in reversed(range(self.cfg.levels)):
+            prev_lvl = self._prev.levels[lvl]
+            ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
+            M = align_level(M, X, ref, cur.levels[lvl], self.cfg.iterations[self.cfg.levels - 1 - lvl], self.cfg)
+        if self.cfg.refine:
+            M = align_level(M, X, ref, cur.levels[0], self.cfg.refine, self.cfg)
+        return se3_inv(M)
 
     def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
@@ -223,4 +237,5 @@ class DirectOdometry:
         self.pose = np.array(pose, dtype=np.float64)
         if previous_pose is not None:
             self.motion2 = change_frame(relative(previous_pose, self.pose), self.calib.T_cam2_cam0)
+            self.cold = False
         self.frames += 1

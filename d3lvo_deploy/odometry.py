@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 from .calib import Calib, parse_calib
+from .cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
@@ -69,7 +70,8 @@ class Odometry:
     """Minimal robot-facing API. `calib` is a Calib or a path to a KITTI calib file."""
 
     def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
-                 model: StageModel | None = None):
+                 model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
+        self.cold_start = cold_start
         self.model = model if model is not None else StageModel(model_dir, sc)
         self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
         self.pre: FramePreprocessor | None = None
@@ -103,6 +105,7 @@ class Odometry:
         # `start_next` (`keeps_own_start`) says where instead: its weighted pose, which its kept pose
         # need not be
         self.motion2 = np.eye(4)
+        self.cold = True  # no previous motion yet: a point-solver graph starts from `cold_start`'s guesses
         self.frames = 0
 
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
@@ -170,11 +173,7 @@ class Odometry:
             on_encoded()
         t0 = time.perf_counter()
         if self._prev is not None:
-            camera = camera_inputs(self.pre.K, self.motion2) if self.model.geometric else None
-            if self.model.point_solver:
-                camera.update(solver_feeds(self._prev["solver_frame"], enc["solver_frame"], self.calib.K2,
-                                           self.points.capacity))
-            out = self.model.flow_pose(self._prev, enc, camera)
+            out = self._flow_pose(enc)
             if self.keep_outputs:
                 self.last["flowpose"] = out
             A2 = out["matrix"][0].astype(np.float64)
@@ -188,10 +187,31 @@ class Odometry:
             start = out.get("start_next")
             if start is not None and np.all(np.isfinite(start)):
                 self.motion2 = start[0].astype(np.float64)
+            self.cold = False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
         self.frames += 1
         return self.pose.copy()
+
+    def _flow_pose(self, enc: dict) -> dict[str, np.ndarray]:
+        """The flow+pose stage on (previous frame, `enc`) from `motion2`, or on the first pair of a
+        point-solver graph from each of `cold_start`'s guesses, keeping the output whose pose
+        explains frame t best."""
+        if not self.model.geometric:
+            return self.model.flow_pose(self._prev, enc, None)
+        feeds = {}
+        if self.model.point_solver:
+            prev, cur = self._prev["solver_frame"], enc["solver_frame"]
+            feeds = solver_feeds(prev, cur, self.calib.K2, self.points.capacity)
+            if self.cold:
+                def cost(A):
+                    return photometric_cost(prev.grey, prev.points, cur.grey, self.calib.K2, A)
+
+                return best_start(candidate_starts(self.cold_start),
+                                  lambda A0: self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, A0),
+                                                                                    **feeds}),
+                                  lambda out: out["matrix"][0].astype(np.float64), cost)[0]
+        return self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, self.motion2), **feeds})
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
@@ -203,6 +223,7 @@ class Odometry:
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)
+            self.cold = False
         if start is not None:
             self.motion2 = np.array(start, dtype=np.float64)
         self.frames += 1

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from d3lvo_deploy.cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
 from d3lvo_deploy.geometry import accumulate, change_frame
 from d3lvo_deploy.points import solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
@@ -16,8 +17,10 @@ from .layers import inverse_depth
 
 
 @torch.no_grad()
-def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None = None) -> np.ndarray:
-    """(N,4,4) cam0 poses, first identity; each frame is completed and encoded exactly once."""
+def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None = None,
+                     cold_start: ColdStartConfig = ColdStartConfig()) -> np.ndarray:
+    """(N,4,4) cam0 poses, first identity; each frame is completed and encoded exactly once. The
+    first pair of a point-solver model starts from `cold_start`'s guesses, as at run time."""
     model.eval()
     seq = KittiSequence.open(seq_dir)
     loader = FrameLoader(seq, model.cfg)
@@ -39,7 +42,18 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
             if solver_cur is not None:
                 feeds = solver_feeds(solver_prev, solver_cur, seq.calib.K2, model.cfg.pt_capacity)
                 solver = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev) for k, v in feeds.items()}
-            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
+
+            def run(init: torch.Tensor) -> dict:
+                return model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, init, prev[3], solver, cur[1])
+
+            if solver is not None and not rel:  # the first pair: no previous motion
+                a, b = solver_prev, solver_cur
+                out = best_start([torch.tensor(A, dtype=torch.float32, device=dev)[None]
+                                  for A in candidate_starts(cold_start)], run,
+                                 lambda o: o["matrix"][0].double().cpu().numpy(),
+                                 lambda A: photometric_cost(a.grey, a.points, b.grey, seq.calib.K2, A))[0]
+            else:
+                out = run(motion)
             A2 = out["matrix"][0].double().cpu().numpy()
             motion = out.get("start_next", out["matrix"])  # the next pair's start (`pt_select`: the weighted pose)
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
