@@ -22,16 +22,16 @@ from d3lvo_deploy.geometry import relative, rotation_angle_precise as rotation_a
 from d3lvo_deploy.sequence import KittiSequence
 
 
-def first_pair(seq: KittiSequence, cfg: ColdStartConfig) -> np.ndarray:
-    """The cam0 motion of frame 1 in frame 0."""
+def first_pair(seq: KittiSequence, cfg: ColdStartConfig) -> tuple[np.ndarray, float]:
+    """The cam0 motion of frame 1 in frame 0, and the solve's time (ms)."""
     odo = DirectOdometry(seq.calib, DirectConfig(cold_start=cfg))
     poses = [odo.step(seq.image(i), seq.scan(i)) for i in range(2)]
-    return relative(poses[0], poses[1])
+    return relative(poses[0], poses[1]), odo.last_timing.ms["flowpose"]
 
 
 def main(drives: list[str]) -> None:
     warnings.simplefilter("ignore")
-    print(f"{'drive':18s} {'step m':>7s} {'yaw deg':>8s} | from rest: m, deg | from the guesses: m, deg")
+    print(f"{'drive':18s} {'step m':>7s} {'yaw deg':>8s} | from rest: m, deg, ms | from the guesses: m, deg, ms")
     for drive in drives:
         try:
             seq = KittiSequence.open(drive)
@@ -43,9 +43,9 @@ def main(drives: list[str]) -> None:
         G = relative(gt.poses[0], gt.poses[1])
         row = f"{Path(drive).name:18s} {np.linalg.norm(G[:3, 3]):7.2f} {np.degrees(rotation_angle(G[:3, :3])):8.2f} |"
         for cfg in (ColdStartConfig(enabled=False), ColdStartConfig()):
-            A = first_pair(seq, cfg)
+            A, ms = first_pair(seq, cfg)
             E = np.linalg.inv(G) @ A
-            row += f" {np.linalg.norm(E[:3, 3]):.3f} {np.degrees(rotation_angle(E[:3, :3])):.3f} |"
+            row += f" {np.linalg.norm(E[:3, 3]):.3f} {np.degrees(rotation_angle(E[:3, :3])):.3f} {ms:.0f} |"
         print(row, flush=True)
     print(f"guesses: {len(candidate_starts(ColdStartConfig()))} ({ColdStartConfig()})")
 

@@ -31,19 +31,21 @@ def test_candidates_start_at_rest_and_cover_speed_and_yaw():
 
 
 def test_photometric_cost_by_hand():
-    """Points 10 m ahead, fx = 100, frame t-1 a ramp u / 200; frame t is the same ramp 10 pixels
-    on (the camera moved 1 m right: points shift 100 * 1 / 10 = 10 pixels left). At that motion
-    every residual is 0; at rest each is 10 / 200 = 0.05; moved 1 m left, 20 / 200 = 0.1."""
+    """Points 10 m ahead on integer pixels u = 40..159 (three periods), fx = 100; frame t-1 is
+    0.5 + 0.3 sin(2 pi u / 40) and frame t the same 10 pixels on (the camera moved 1 m right:
+    points shift 100 * 1 / 10 = 10 pixels left), at half the gain and 0.2 brighter. At that motion
+    the fitted gain and offset explain every point: cost 0. At rest frame t shows a quarter period
+    on, 0.45 + 0.15 cos: the fit's gain is 0 (sin and cos are orthogonal over whole periods), and
+    the median of 0.15 |cos| over 40 evenly spaced phases is 0.15 cos(45 deg) = 0.1061."""
     K = np.array([[100.0, 0, 100.0], [0, 100.0, 50.0], [0, 0, 1]])
     v, u = np.mgrid[0:100, 0:200].astype(np.float32)
-    grey1, grey2 = u / 200.0, (u + 10.0) / 200.0
-    rng = np.random.default_rng(0)
-    uv = rng.uniform([40, 10], [160, 90], (300, 2))
-    X = np.c_[(uv - [100.0, 50.0]) / 100.0 * 10.0, np.full(300, 10.0)]
-    right, left = make_se3(np.eye(3), [1.0, 0, 0]), make_se3(np.eye(3), [-1.0, 0, 0])
+    grey1 = 0.5 + 0.3 * np.sin(2 * np.pi * u / 40.0)
+    grey2 = 0.2 + 0.5 * (0.5 + 0.3 * np.sin(2 * np.pi * (u + 10.0) / 40.0))
+    uu, vv = np.meshgrid(np.arange(40.0, 160.0), [20.0, 50.0, 80.0])
+    X = np.c_[(uu.ravel() - 100.0) / 100.0 * 10.0, (vv.ravel() - 50.0) / 100.0 * 10.0, np.full(uu.size, 10.0)]
+    right = make_se3(np.eye(3), [1.0, 0, 0])
     assert photometric_cost(grey1, X, grey2, K, right) == pytest.approx(0.0, abs=1e-5)
-    assert photometric_cost(grey1, X, grey2, K, np.eye(4)) == pytest.approx(0.05, abs=1e-5)
-    assert photometric_cost(grey1, X, grey2, K, left) == pytest.approx(0.1, abs=1e-5)
+    assert photometric_cost(grey1, X, grey2, K, np.eye(4)) == pytest.approx(0.5 * 0.3 * np.cos(np.pi / 4), abs=1e-5)
     # too few points in view: no cost to compare
     assert photometric_cost(grey1, X[:5], grey2, K, np.eye(4)) == float("inf")
 
