@@ -158,9 +158,39 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
 
 
 @dataclass
-class _Frame:
+class TrackedFrame:
+    """What the tracker keeps of a frame: its image pyramid and its textured LiDAR returns."""
     levels: list[Level]
     points: np.ndarray  # (N, 3) textured LiDAR returns in image_2 camera coordinates
+
+    @classmethod
+    def of(cls, grey: np.ndarray, points: np.ndarray, K: np.ndarray, levels: int) -> "TrackedFrame":
+        return cls(pyramid(grey, K, levels), points)
+
+
+def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectConfig) -> np.ndarray:
+    """The image_2 motion A (frame t in t-1) that aligns frame t-1's points with frame t, coarse to
+    fine from `start`."""
+    M, X = se3_inv(start), prev.points
+    for lvl in reversed(range(cfg.levels)):
+        prev_lvl = prev.levels[lvl]
+        ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
+        M = align_level(M, X, ref, cur.levels[lvl], cfg.iterations[cfg.levels - 1 - lvl], cfg)
+    if cfg.refine:
+        M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
+    return se3_inv(M)
+
+
+def first_motion(prev: TrackedFrame, cur: TrackedFrame, cfg: DirectConfig) -> np.ndarray:
+    """`track` for a pair with no previous motion: from each of the cold start's guesses, keeping
+    the motion with the lowest `photometric_cost`. The network's first pair starts from it too, so
+    that its confidence reads the evidence against a motion near the truth, as on every other pair."""
+    finest = prev.levels[0]
+
+    def cost(A: np.ndarray) -> float:
+        return photometric_cost(finest.stack[..., 0], prev.points, cur.levels[0].stack[..., 0], finest.K, A)
+
+    return best_start(candidate_starts(cfg.cold_start), lambda A0: track(prev, cur, A0, cfg), lambda A: A, cost)[0]
 
 
 @dataclass
@@ -177,20 +207,20 @@ class DirectOdometry:
     needs_scan = True
 
     def reset(self, start_pose: np.ndarray | None = None) -> None:
-        self._prev: _Frame | None = None
+        self._prev: TrackedFrame | None = None
         self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
         self.motion2 = np.eye(4)  # last image_2 motion: the constant-velocity start
         self.cold = True  # no previous motion yet: the first pair starts from `cold_start`'s guesses
         self.frames = 0
 
-    def _frame(self, image: np.ndarray, points: np.ndarray | None) -> _Frame:
+    def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         X = textured_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
-        return _Frame(levels, X)
+        return TrackedFrame(levels, X)
 
     def register_frame(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Track frame t against frame t-1's LiDAR points; returns the image_2 motion A (t in t-1)."""
@@ -198,29 +228,14 @@ class DirectOdometry:
         t0 = time.perf_counter()
         A = np.eye(4)
         if self._prev is not None and len(self._prev.points):
-            X, finest = self._prev.points, self._prev.levels[0]
             if self.cold:
-                A, _ = best_start(candidate_starts(self.cfg.cold_start), lambda A0: self.track(cur, A0),
-                                  lambda A: A, lambda A: photometric_cost(finest.stack[..., 0], X,
-                                                                          cur.levels[0].stack[..., 0], finest.K, A))
+                A = first_motion(self._prev, cur, self.cfg)
             else:
-                A = self.track(cur, self.motion2)  # constant velocity
+                A = track(self._prev, cur, self.motion2, self.cfg)  # constant velocity
             self.motion2, self.cold = A, False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = cur
         return A
-
-    def track(self, cur: _Frame, start: np.ndarray) -> np.ndarray:
-        """The image_2 motion A (frame t in t-1) that aligns frame t-1's points with frame t,
-        coarse to fine from `start`."""
-        M, X = se3_inv(start), self._prev.points
-        for lvl in reversed(range(self.cfg.levels)):
-            prev_lvl = self._prev.levels[lvl]
-            ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
-            M = align_level(M, X, ref, cur.levels[lvl], self.cfg.iterations[self.cfg.levels - 1 - lvl], self.cfg)
-        if self.cfg.refine:
-            M = align_level(M, X, ref, cur.levels[0], self.cfg.refine, self.cfg)
-        return se3_inv(M)
 
     def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""

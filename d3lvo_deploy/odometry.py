@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from .calib import Calib, parse_calib
-from .cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
+from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
@@ -101,11 +101,12 @@ class Odometry:
         self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
         self.relative = np.eye(4)
         # the last pair's motion of the image_2 camera: where the Gauss-Newton head starts the next
-        # pair (constant velocity; identity on the first pair, a cold start). A graph with
+        # pair (constant velocity; on the first pair identity, or for a point-solver graph
+        # `cold_start_motion`). A graph with
         # `start_next` (`keeps_own_start`) says where instead: its weighted pose, which its kept pose
         # need not be
         self.motion2 = np.eye(4)
-        self.cold = True  # no previous motion yet: a point-solver graph starts from `cold_start`'s guesses
+        self.cold = True  # no previous motion yet
         self.frames = 0
 
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
@@ -194,24 +195,18 @@ class Odometry:
         return self.pose.copy()
 
     def _flow_pose(self, enc: dict) -> dict[str, np.ndarray]:
-        """The flow+pose stage on (previous frame, `enc`) from `motion2`, or on the first pair of a
-        point-solver graph from each of `cold_start`'s guesses, keeping the output whose pose
-        explains frame t best."""
+        """The flow+pose stage on (previous frame, `enc`) from `motion2`; the first pair of a
+        point-solver graph, which has no previous motion, from the classical tracker's solve from
+        `cold_start`'s guesses (`direct.first_motion`)."""
         if not self.model.geometric:
             return self.model.flow_pose(self._prev, enc, None)
-        feeds = {}
+        feeds, start = {}, self.motion2
         if self.model.point_solver:
             prev, cur = self._prev["solver_frame"], enc["solver_frame"]
             feeds = solver_feeds(prev, cur, self.calib.K2, self.points.capacity)
-            if self.cold:
-                def cost(A):
-                    return photometric_cost(prev.grey, prev.points, cur.grey, self.calib.K2, A)
-
-                return best_start(candidate_starts(self.cold_start),
-                                  lambda A0: self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, A0),
-                                                                                    **feeds}),
-                                  lambda out: out["matrix"][0].astype(np.float64), cost)[0]
-        return self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, self.motion2), **feeds})
+            if self.cold and len(prev.points):
+                start = cold_start_motion(prev, cur, self.calib.K2, self.model.config, self.cold_start)
+        return self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, start), **feeds})
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
@@ -231,3 +226,16 @@ class Odometry:
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:
         """The image_2 motion between two cam0 poses: the Gauss-Newton head's next start."""
         return change_frame(relative(before, after), self.calib.T_cam2_cam0)
+
+
+def cold_start_motion(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, model_config: dict,
+                      cold_start: ColdStartConfig) -> np.ndarray:
+    """Where a point-solver model starts a pair with no previous motion: its classical mode's
+    solve from the cold start's guesses (image_2, frame t in frame t-1); rest where it is off."""
+    if not cold_start.enabled:
+        return np.eye(4)
+    from .direct import DirectConfig, TrackedFrame, first_motion
+
+    cfg = replace(DirectConfig.of_model(model_config), cold_start=cold_start)
+    return first_motion(TrackedFrame.of(prev.grey, prev.points, K, cfg.levels),
+                        TrackedFrame.of(cur.grey, cur.points, K, cfg.levels), cfg)

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from d3lvo_deploy.cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
+from d3lvo_deploy.cold_start import ColdStartConfig
 from d3lvo_deploy.geometry import accumulate, change_frame
+from d3lvo_deploy.odometry import cold_start_motion
 from d3lvo_deploy.points import solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 
@@ -43,17 +44,10 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
                 feeds = solver_feeds(solver_prev, solver_cur, seq.calib.K2, model.cfg.pt_capacity)
                 solver = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev) for k, v in feeds.items()}
 
-            def run(init: torch.Tensor) -> dict:
-                return model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, init, prev[3], solver, cur[1])
-
-            if solver is not None and not rel:  # the first pair: no previous motion
-                a, b = solver_prev, solver_cur
-                out = best_start([torch.tensor(A, dtype=torch.float32, device=dev)[None]
-                                  for A in candidate_starts(cold_start)], run,
-                                 lambda o: o["matrix"][0].double().cpu().numpy(),
-                                 lambda A: photometric_cost(a.grey, a.points, b.grey, seq.calib.K2, A))[0]
-            else:
-                out = run(motion)
+            if solver is not None and not rel and len(solver_prev.points):  # the first pair: no previous motion
+                A = cold_start_motion(solver_prev, solver_cur, seq.calib.K2, model.cfg.to_dict(), cold_start)
+                motion = torch.tensor(A, dtype=torch.float32, device=dev)[None]
+            out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
             A2 = out["matrix"][0].double().cpu().numpy()
             motion = out.get("start_next", out["matrix"])  # the next pair's start (`pt_select`: the weighted pose)
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))

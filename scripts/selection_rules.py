@@ -24,14 +24,14 @@ import numpy as np
 import torch
 
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.cold_start import best_start
 from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.geometry import accumulate, change_frame, rotation_angle_precise
 from d3lvo_deploy.poses import Trajectory, read_poses
 from d3lvo_deploy.sequence import KittiSequence
 from d3lvo_deploy.synth.generator import drive_traffic
-from models import pose_points, predict
+from models import pose_points
 from models.checkpoint import build_model, load_checkpoint
+from models.predict import predict_sequence
 
 GAINS = (0.003, 0.005, 0.0075, 0.01, 0.02)
 ROTATIONS = (0.0, 0.04, 0.05, 0.06, 0.08, 0.1)  # degrees; 0: off
@@ -60,18 +60,11 @@ def record_pairs(model, drive: str) -> list[dict]:
                               share=distrusted_share(out["point_weights"], args[-1]["point_mask1"])))
         return out
 
-    def choosing(starts, solve, motion, cost):
-        """The first pair runs once per cold start: keep the record of the one kept."""
-        first = len(pairs)
-        out, i = best_start(starts, solve, motion, cost)
-        pairs[first:] = pairs[first + i:first + i + 1]
-        return out, i
-
-    pose_points.PointPose.forward, predict.best_start = recording, choosing
+    pose_points.PointPose.forward = recording
     try:
-        predict.predict_sequence(model, drive)
+        predict_sequence(model, drive)
     finally:
-        pose_points.PointPose.forward, predict.best_start = forward, best_start
+        pose_points.PointPose.forward = forward
     return pairs
 
 
