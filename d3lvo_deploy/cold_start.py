@@ -7,21 +7,20 @@ turn at 3.5 deg per frame, locks onto a wrong pose, and its first rotation error
 trajectory. So the first pair is solved from a small grid of forward speeds and yaw rates, and
 the solve kept is the one with the lowest median photometric residual of frame t-1's points in
 frame t at full resolution, after the exposure change between the frames: a cost that needs no
-learning, and one that no wrong basin scored lower on the drives measured (docs/evaluation.md). Shared by `--method direct`, the runtime and the torch model, so
-that the network and its classical reference start alike.
+learning, and one that no wrong basin scored lower on the drives measured (docs/evaluation.md).
+`--method direct` keeps that solve; the network, in the runtime and in torch, starts its first
+pair from it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, TypeVar
+from typing import Callable
 
 import numpy as np
 
 from .geometry import axis_angle_to_rot, se3_inv
 from .points import bilinear, project
-
-Solve = TypeVar("Solve")
 
 
 @dataclass(frozen=True)
@@ -73,16 +72,11 @@ def photometric_cost(grey1: np.ndarray, points1: np.ndarray, grey2: np.ndarray, 
     return float(np.median(np.abs(seen - seen.mean() - gain * dr)))
 
 
-def best_start(starts: list[np.ndarray], solve: Callable[[np.ndarray], Solve],
-               motion: Callable[[Solve], np.ndarray], cost: Callable[[np.ndarray], float]) -> tuple[Solve, int]:
-    """Solve from each start and keep the solve whose motion costs least (the first on a tie);
-    returns it and its start's index. One start: that solve, uncosted."""
-    best, best_cost, best_i = None, float("inf"), 0
-    for i, start in enumerate(starts):
-        out = solve(start)
-        if len(starts) == 1:
-            return out, 0
-        c = cost(motion(out))
-        if best is None or c < best_cost:
-            best, best_cost, best_i = out, c, i
-    return best, best_i
+def best_start(starts: list[np.ndarray], solve: Callable[[np.ndarray], np.ndarray],
+               cost: Callable[[np.ndarray], float]) -> np.ndarray:
+    """The motion `solve` reaches from the start whose result costs least (the first on a tie).
+    One start: its solve, uncosted."""
+    solves = [solve(start) for start in starts]
+    if len(solves) == 1:
+        return solves[0]
+    return solves[int(np.argmin([cost(A) for A in solves]))]

@@ -190,7 +190,7 @@ def first_motion(prev: TrackedFrame, cur: TrackedFrame, cfg: DirectConfig) -> np
     def cost(A: np.ndarray) -> float:
         return photometric_cost(finest.stack[..., 0], prev.points, cur.levels[0].stack[..., 0], finest.K, A)
 
-    return best_start(candidate_starts(cfg.cold_start), lambda A0: track(prev, cur, A0, cfg), lambda A: A, cost)[0]
+    return best_start(candidate_starts(cfg.cold_start), lambda A0: track(prev, cur, A0, cfg), cost)
 
 
 @dataclass
