@@ -258,3 +258,6 @@ done
 # for the choice): the demo's drive and seed 228
 [ -f "$OUT/data/demo_909/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/demo_909" --frames 220 --seed 909 --size "$SIZE"
 .venv/bin/python scripts/selection_rules.py "$OUT/data/demo_909" "$OUT/data/static_228"
+# each drive's first pair from rest and from the cold start's guesses (docs/evaluation.md, the first pair)
+.venv/bin/python scripts/first_pairs.py "$OUT"/data/val_* "$OUT"/data/tr_00 "$OUT"/data/heldout_* "$OUT"/data/static_219 \
+  "$OUT"/data/static_22[0-9] "$OUT"/data/traffic_3* "$OUT"/data/demo_909
