@@ -185,12 +185,14 @@ def first_motion(prev: TrackedFrame, cur: TrackedFrame, cfg: DirectConfig) -> np
     """`track` for a pair with no previous motion: from each of the cold start's guesses, keeping
     the motion with the lowest `photometric_cost`. The network's first pair starts from it too, so
     that its confidence reads the evidence against a motion near the truth, as on every other pair."""
+    return best_start(candidate_starts(cfg.cold_start), lambda A0: track(prev, cur, A0, cfg),
+                      lambda A: motion_cost(prev, cur, A))
+
+
+def motion_cost(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray) -> float:
+    """`photometric_cost` of the image_2 motion A on the pair's finest level."""
     finest = prev.levels[0]
-
-    def cost(A: np.ndarray) -> float:
-        return photometric_cost(finest.stack[..., 0], prev.points, cur.levels[0].stack[..., 0], finest.K, A)
-
-    return best_start(candidate_starts(cfg.cold_start), lambda A0: track(prev, cur, A0, cfg), cost)
+    return photometric_cost(finest.stack[..., 0], prev.points, cur.levels[0].stack[..., 0], finest.K, A)
 
 
 @dataclass

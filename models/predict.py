@@ -43,7 +43,6 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
             if solver_cur is not None:
                 feeds = solver_feeds(solver_prev, solver_cur, seq.calib.K2, model.cfg.pt_capacity)
                 solver = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev) for k, v in feeds.items()}
-
             if solver is not None and not rel and len(solver_prev.points):  # the first pair: no previous motion
                 A = cold_start_motion(solver_prev, solver_cur, seq.calib.K2, model.cfg.to_dict(), cold_start)
                 motion = torch.tensor(A, dtype=torch.float32, device=dev)[None]

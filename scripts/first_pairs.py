@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from d3lvo_deploy.cold_start import ColdStartConfig, candidate_starts, photometric_cost
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, track
+from d3lvo_deploy.cold_start import ColdStartConfig, candidate_starts
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, motion_cost, track
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import change_frame, relative, rotation_angle_precise as rotation_angle
 from d3lvo_deploy.sequence import KittiSequence
@@ -36,11 +36,10 @@ def margin(seq: KittiSequence, G: np.ndarray) -> str:
     odo = DirectOdometry(seq.calib)
     prev = odo._frame(seq.image(0), seq.scan(0))
     cur = odo._frame(seq.image(1), seq.scan(1))
-    finest = prev.levels[0]
     right, wrong = [], []
     for start in candidate_starts(ColdStartConfig()):
         A = track(prev, cur, start, odo.cfg)
-        cost = photometric_cost(finest.stack[..., 0], prev.points, cur.levels[0].stack[..., 0], finest.K, A)
+        cost = motion_cost(prev, cur, A)
         off = np.linalg.norm((np.linalg.inv(G) @ change_frame(A, seq.calib.T_cam0_cam2))[:3, 3])
         (right if off < 0.05 else wrong if off > 0.2 else []).append(cost)
     return f"{min(wrong) / min(right):.2f}" if right and wrong else ""
