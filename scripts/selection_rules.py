@@ -12,7 +12,10 @@ the mean and the smallest reduction against it. Beside the grid, at the shipped 
 rules that do not ship: a cap on the share of frame t-1's points the network distrusts, the test
 passed on the previous pair too (a mover stays in view for several pairs), and the gain held out:
 the weighted solve run again on half of the points (every second one of the list) and scored on
-the other half, both ways round, the smaller gain taken (`held_out_gain`).
+the other half, both ways round, the smaller gain taken (`held_out_gain`). And one that could:
+the network's confidence read again with the classical pose as the motion its evidence is
+measured against, the weighted pose kept only where it still distrusts some of the points (the
+classical pose leaves something unexplained).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ ROTATIONS = (0.0, 0.04, 0.05, 0.06, 0.08, 0.1)  # degrees; 0: off
 SHIPPED = (0.005, 0.05)
 SHARES = (0.8, 0.7, 0.6, 0.5)  # the most of frame t-1's points the network may distrust
 HELD_OUT = (0.0, 0.002, 0.005, 0.01)
+UNEXPLAINED = (0.05, 0.1, 0.15, 0.2, 0.3)  # the least share distrusted against the classical pose
 
 
 def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
@@ -69,9 +73,19 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
                                     weight * halves[1 - i], K)[0]) for i in (0, 1))
 
 
+def distrusted_against(pose: pose_points.PointPose, args: tuple, motion: torch.Tensor) -> float:
+    """`distrusted_share` of the confidence whose evidence is read against `motion` instead of the
+    pair's start (args: `PointPose.forward`'s)."""
+    hidden, flow, feat1, feat2, invdepth1, invdepth2, K, _, solver = args
+    logits = pose.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, motion)
+    mask = solver["point_mask1"]
+    conf = pose.point_confidence(torch.sigmoid(-logits), solver["points1"], K)
+    return distrusted_share(mask * conf ** pose.cfg.pt_conf_power, mask)
+
+
 def record_pairs(model, drive: str) -> list[dict]:
     """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1), the
-    share of the points the network distrusts, the gain held out."""
+    share of the points the network distrusts, the gain held out, the share it distrusts against C."""
     pairs: list[dict] = []
     forward = pose_points.PointPose.forward
 
@@ -82,7 +96,8 @@ def record_pairs(model, drive: str) -> list[dict]:
                               C=out["classical"][0].double().numpy(),
                               share=distrusted_share(out["point_weights"], args[-1]["point_mask1"]),
                               held_out=held_out_gain(self, args[7], args[-1], out["point_weights"],
-                                                     out["classical"])))
+                                                     out["classical"]),
+                              unexplained=distrusted_against(self, args, out["classical"])))
         return out
 
     pose_points.PointPose.forward = recording
@@ -145,6 +160,8 @@ def main(drives: list[str], checkpoint: Path) -> None:
               for g in HELD_OUT]
     rules += [(f"held-out gain > {g} pt_select_rotation {SHIPPED[1]}",
                lambda ps, i, g=g: ps[i]["held_out"] > g and ps[i]["rotation"] > SHIPPED[1]) for g in HELD_OUT]
+    rules += [(f"shipped, distrusted against C > {f}", lambda ps, i, f=f: shipped(ps, i) and ps[i]["unexplained"] > f)
+              for f in UNEXPLAINED]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
         scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
