@@ -55,6 +55,12 @@ def _cell_grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], -1).reshape(1, h * w, 2)
 
 
+def interleave(a: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """(B,...) twice -> (2B,...): rows 2i and 2i + 1 are a[i] and c[i], two solves of pair i that
+    `point_solver.solve` runs on one copy of its images."""
+    return torch.stack([a, c], 1).flatten(0, 1)
+
+
 class PointPose(nn.Module):
     def __init__(self, cfg: D3LVOConfig):
         super().__init__()
@@ -102,6 +108,16 @@ class PointPose(nn.Module):
         return F.grid_sample(confidence, grid.unsqueeze(1), mode="bilinear", padding_mode="border",
                              align_corners=True)[:, 0, 0]
 
+    def point_weights(self, confidence: torch.Tensor, solver: dict, K: torch.Tensor) -> torch.Tensor:
+        """(B,N) the solver's weight of each of frame t-1's points: the point list's mask times its
+        confidence (`point_confidence`), gated, capped and raised to the power the config sets."""
+        conf = self.point_confidence(confidence, solver["points1"], K)
+        if self.cfg.pt_gate > 0:
+            conf = (conf > self.cfg.pt_gate).to(conf.dtype)
+        if self.cfg.pt_conf_full < 1:
+            conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
+        return solver["point_mask1"] * conf ** self.cfg.pt_conf_power
+
     def pyramids(self, solver: dict) -> tuple[list, list]:
         """Both frames' image pyramids for `solve`: the exported graph's inputs where `solver` has
         them, else made from its grey images (training)."""
@@ -122,12 +138,7 @@ class PointPose(nn.Module):
         out = {"moving_logits": logits, "confidence": [confidence]}
         if solver is None:
             return out
-        conf = self.point_confidence(confidence, solver["points1"], K)
-        if self.cfg.pt_gate > 0:
-            conf = (conf > self.cfg.pt_gate).to(conf.dtype)
-        if self.cfg.pt_conf_full < 1:
-            conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
-        weight = solver["point_mask1"] * conf ** self.cfg.pt_conf_power
+        weight = self.point_weights(confidence, solver, K)
         grey1, stack2 = self.pyramids(solver)
         points, mask, K_image = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
         if self.cfg.pt_select > 0:
@@ -136,10 +147,9 @@ class PointPose(nn.Module):
             # one explains the points the network trusts better by more than pt_select
             # (`consensus_gain`)
             # batch rows 2i and 2i + 1 are pair i's two solves, which share its images (no copy)
-            pair = lambda a, c: torch.stack([a, c], 1).flatten(0, 1)  # noqa: E731
-            two = lambda x: pair(x, x)  # noqa: E731
-            both = solve(grey1, stack2, two(points), pair(weight, mask), two(K_image), two(init), self.settings,
-                         mask=two(mask))
+            two = lambda x: interleave(x, x)  # noqa: E731
+            both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
+                         self.settings, mask=two(mask))
             levels, classical = [L[0::2] for L in both], both[-1][1::2]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)
             # the next pair starts from the weighted pose, whichever is kept: started from a

@@ -65,10 +65,9 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
     points, mask, K = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
     even = (torch.arange(points.shape[1]) % 2 == 0).to(weight.dtype)[None]
     halves = (even, 1.0 - even)
-    pair = lambda a, c: torch.stack([a, c], 1).flatten(0, 1)  # noqa: E731
-    two = lambda x: pair(x, x)  # noqa: E731
-    fitted = solve(grey1, stack2, two(points), pair(weight * halves[0], weight * halves[1]), two(K), two(init),
-                   pose.settings, mask=two(mask))[-1]
+    two = lambda x: pose_points.interleave(x, x)  # noqa: E731
+    fitted = solve(grey1, stack2, two(points), pose_points.interleave(weight * halves[0], weight * halves[1]),
+                   two(K), two(init), pose.settings, mask=two(mask))[-1]
     return min(float(consensus_gain(fitted[i : i + 1], classical, grey1[0], stack2[0], points,
                                     weight * halves[1 - i], K)[0]) for i in (0, 1))
 
@@ -78,9 +77,7 @@ def distrusted_against(pose: pose_points.PointPose, args: tuple, motion: torch.T
     pair's start (args: `PointPose.forward`'s)."""
     hidden, flow, feat1, feat2, invdepth1, invdepth2, K, _, solver = args
     logits = pose.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, motion)
-    mask = solver["point_mask1"]
-    conf = pose.point_confidence(torch.sigmoid(-logits), solver["points1"], K)
-    return distrusted_share(mask * conf ** pose.cfg.pt_conf_power, mask)
+    return distrusted_share(pose.point_weights(torch.sigmoid(-logits), solver, K), solver["point_mask1"])
 
 
 def record_pairs(model, drive: str) -> list[dict]:
@@ -102,8 +99,7 @@ def record_pairs(model, drive: str) -> list[dict]:
 
     pose_points.PointPose.forward = recording
     try:
-        with torch.no_grad():
-            predict_sequence(model, drive)
+        predict_sequence(model, drive)
     finally:
         pose_points.PointPose.forward = forward
     return pairs
