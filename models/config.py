@@ -12,7 +12,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
-               "pt_refine", "pt_select", "pt_select_rotation")
+               "pt_refine", "pt_select", "pt_select_rotation", "pt_select_unexplained")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -108,6 +108,11 @@ class D3LVOConfig:
     # 0: off; with pt_select 0 (the weighted pose always) it has nothing to gate (docs/model-card.md,
     # chosen on validation drives)
     pt_select_rotation: float = 0.0
+    # with pt_select, the weighted pose is kept only where the confidence, read again with the
+    # classical pose as the motion its evidence is measured against, still distrusts more than
+    # this share of frame t-1's points (weight under 0.5): where the classical pose leaves nothing
+    # unexplained, the weighted one had only doubted a poor start. 0: off (docs/model-card.md)
+    pt_select_unexplained: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -174,6 +179,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_select must be in [0, 1) (0: off), not {self.pt_select!r}")
         if not (isinstance(self.pt_select_rotation, (int, float)) and 0 <= self.pt_select_rotation < 90):
             raise ValueError(f"pt_select_rotation must be in [0, 90) degrees (0: off), not {self.pt_select_rotation!r}")
+        if not (isinstance(self.pt_select_unexplained, (int, float)) and 0 <= self.pt_select_unexplained < 1):
+            raise ValueError(f"pt_select_unexplained must be a share in [0, 1) (0: off), not {self.pt_select_unexplained!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

@@ -61,6 +61,13 @@ def interleave(a: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     return torch.stack([a, c], 1).flatten(0, 1)
 
 
+def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(B,) the share of frame t-1's points (mask above 0) the network distrusts: weight under 0.5,
+    where `consensus_gain`'s trusted points begin."""
+    valid = (mask > 0).to(weight.dtype)
+    return (valid * (weight < 0.5).to(weight.dtype)).sum(1) / valid.sum(1).clamp(min=1.0)
+
+
 class PointPose(nn.Module):
     def __init__(self, cfg: D3LVOConfig):
         super().__init__()
@@ -158,6 +165,13 @@ class PointPose(nn.Module):
             keep = gain > self.cfg.pt_select
             if self.cfg.pt_select_rotation > 0:
                 keep = keep & rotations_differ(levels[-1], classical, self.cfg.pt_select_rotation)
+            if self.cfg.pt_select_unexplained > 0:
+                # the evidence read again against the classical pose: what it leaves unexplained
+                # (a start far off makes a static scene look as if it moved; the classical pose
+                # does not, unless it followed something that moves)
+                again = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, classical)
+                unexplained = distrusted_share(self.point_weights(torch.sigmoid(-again), solver, K), mask)
+                keep = keep & (unexplained > self.cfg.pt_select_unexplained)
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:

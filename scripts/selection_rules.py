@@ -48,10 +48,8 @@ UNEXPLAINED = (0.05, 0.1, 0.15, 0.2, 0.3)  # the least share distrusted against 
 
 
 def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
-    """The share of frame t-1's points (mask above 0) the network distrusts (weight under 0.5,
-    where `consensus_gain`'s trusted points begin): batch row 0."""
-    valid = (mask[0] > 0).to(weight.dtype)
-    return float((valid * (weight[0] < 0.5).to(weight.dtype)).sum() / valid.sum().clamp(min=1.0))
+    """`pose_points.distrusted_share` of batch row 0."""
+    return float(pose_points.distrusted_share(weight, mask)[0])
 
 
 def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict, weight: torch.Tensor,

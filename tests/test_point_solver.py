@@ -329,6 +329,54 @@ def test_the_weighted_pose_is_kept_only_where_its_rotation_differs(monkeypatch, 
     np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
 
 
+@pytest.mark.parametrize("margin, kept", [(0.9, "weighted"), (1.1, "classical")])
+def test_the_weighted_pose_is_kept_only_where_the_classical_pose_leaves_points_unexplained(monkeypatch, margin,
+                                                                                           kept):
+    """PointPose with `pt_select_unexplained`: the confidence is read a second time with the
+    classical pose as the motion (the second `moving_logits` call gets exactly that pose), and the
+    weighted pose is kept only where more than the threshold's share of frame t-1's points is
+    distrusted. Here the second reading distrusts the plane's left half, whose share of the
+    valid points is counted in numpy: a threshold just under it keeps the weighted pose, just over
+    it the classical one."""
+    from models.config import D3LVOConfig
+    from models.point_solver import pyramid_input_names
+    from models.pose_points import PointPose
+
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1 = _t(grey_image(moved))[None, None]
+    right = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310
+    weight = mask.clone()
+    weight[0, : len(X)] = _t(right)
+    share = float((~right).sum()) / len(X)  # the left half, distrusted, among the valid points
+    assert 0.2 < share < 0.8 and int(mask.sum()) == len(X)
+    grey1, stack2 = image_pyramids(g0, g1, 3)
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    settings = SolverSettings((3, 3, 3))
+    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
+    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
+    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_select=0.01, pt_iters=(3, 3, 3),
+                                     pt_select_unexplained=share * margin))
+    motions = []
+
+    def logits(*args):
+        motions.append(args[-1])
+        return torch.zeros(1, 1, 44, 152)
+
+    monkeypatch.setattr(pp, "moving_logits", logits)
+    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
+    names1, names2 = pyramid_input_names(3)
+    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
+              "image_intrinsics": K}
+    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
+    assert len(motions) == 2 and motions[0] is init
+    np.testing.assert_allclose(motions[1].numpy(), classical.numpy(), atol=1e-9)
+    want = weighted if kept == "weighted" else classical
+    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
+
+
 def _real_pair():
     from conftest import shared_path
 
