@@ -47,9 +47,8 @@ class DirectConfig:
     # restored weights are all 1 here, so that its classical mode stays this tracker)
     refine: int = 0
     points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked
-    # fit frame t's grey as a ref + b at every iterate (exposure changes). Off: measured on five
-    # 200-frame drives (docs/evaluation.md) it helped only where the exposure changes (t_rel 0.25 ->
-    # 0.17 %) and cost 0.02-0.06 points on the four static, evenly lit ones
+    # fit frame t's grey as a ref + b at every step (exposure changes; the network's `pt_affine`,
+    # docs/evaluation.md)
     affine_brightness: bool = False
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
@@ -63,7 +62,8 @@ class DirectConfig:
         iters = tuple(model_config["pt_iters"])
         return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
                    damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
-                   refine=model_config.get("pt_refine", 0), points=point_config(model_config))
+                   refine=model_config.get("pt_refine", 0), points=point_config(model_config),
+                   affine_brightness=bool(model_config.get("pt_affine", False)))
 
 
 @dataclass
@@ -108,17 +108,15 @@ def huber_weights(r: np.ndarray, k: float | None = None) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
 
 
-def brightness_fit(ref: np.ndarray, cur: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """a ref + b with (a, b) the Huber-weighted least-squares fit of cur on ref: the exposure and
-    gain change between the frames, re-fitted at every pose iterate (weights from residuals r)."""
-    w = huber_weights(r - np.median(r))
-    sw, sx, sy = w.sum(), (w * ref).sum(), (w * cur).sum()
-    sxx, sxy = (w * ref * ref).sum(), (w * ref * cur).sum()
-    det = sw * sxx - sx * sx
-    if det <= 1e-12 * max(sw * sxx, 1e-30):
-        return ref
-    a = (sw * sxy - sx * sy) / det
-    return a * ref + (sy - a * sx) / sw
+def affine_fit(ref: np.ndarray, cur: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """a ref + b with the w-weighted mean and spread of cur: the exposure and gain change between
+    the frames. Matched moments rather than a least-squares fit of cur on ref: far from the
+    solution the two do not correlate, a least-squares gain goes to 0 and the residual no longer
+    depends on the pose."""
+    sw = max(float(w.sum()), 1e-30)
+    mr, mc = (w * ref).sum() / sw, (w * cur).sum() / sw
+    vr, vc = (w * (ref - mr) ** 2).sum() / sw, (w * (cur - mc) ** 2).sum() / sw
+    return np.sqrt(max(vc, 1e-30) / max(vr, 1e-30)) * (ref - mr) + mc
 
 
 def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, iterations: int,
@@ -135,14 +133,21 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
             break
         Xt, uv, zi = Xt[ok], uv[ok], zi[ok]
         s = sample(lvl.stack, uv)
-        r = s[:, 0] - ref[ok]
         if cfg.affine_brightness:
-            r = s[:, 0] - brightness_fit(ref[ok], s[:, 0], r)
+            # fitted on every point in view, then again with the Huber weights of that fit's
+            # residuals (the threshold re-estimated from them), as the network's solver does
+            cur = s[:, 0]
+            r = cur - affine_fit(ref[ok], cur, np.ones_like(cur))
+            if i % cfg.scale_every == 0:
+                k = huber_threshold(r)
+            r = cur - affine_fit(ref[ok], cur, huber_weights(r, k))
+        else:
+            r = s[:, 0] - ref[ok]
         # d residual / d point = grad . d pixel / d point; rotation part = X' x a (left perturbation)
         a = np.stack([s[:, 1] * fx * zi, s[:, 2] * fy * zi,
                       -(s[:, 1] * fx * Xt[:, 0] + s[:, 2] * fy * Xt[:, 1]) * zi * zi], 1)
         J = np.concatenate([a, np.cross(Xt, a)], 1)
-        if i % cfg.scale_every == 0:
+        if i % cfg.scale_every == 0 and not cfg.affine_brightness:
             k = huber_threshold(r)
         Jw = J * huber_weights(r, k)[:, None]
         H, g = Jw.T @ J, Jw.T @ r

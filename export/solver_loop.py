@@ -149,9 +149,10 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
         a = {x.name: helper.get_attribute_value(x) for x in node.attribute}
         batch = a.get("batch", 1)
         images = a.get("images", batch)
-        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images)
+        affine = bool(a.get("affine", 0))
+        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images, affine)
         if key not in blocks:
-            s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"])
+            s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"], affine=affine)
             blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch, images)
         trips = a["trips"]
         prefix = f"gn_loop{loops}/"

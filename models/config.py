@@ -12,7 +12,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
-               "pt_refine", "pt_select", "pt_select_rotation", "pt_select_unexplained")
+               "pt_refine", "pt_affine", "pt_select", "pt_select_rotation", "pt_select_unexplained")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -83,6 +83,10 @@ class D3LVOConfig:
     # threshold) weighs fully again, and up to this many more steps are taken there: the confidence
     # is read before the pose is known, and on a static scene its doubts only reweight good points
     pt_refine: int = 0
+    # fit frame t's grey as a ref + b at every Gauss-Newton step (both solves): an exposure change
+    # between the frames shifts every residual alike, and without the fit the solve can trade it
+    # for motion (docs/evaluation.md)
+    pt_affine: bool = False
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
     # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
@@ -167,6 +171,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
         if not (isinstance(self.pt_scale_every, int) and self.pt_scale_every >= 1):
             raise ValueError(f"pt_scale_every must be a whole number of steps, at least 1, not {self.pt_scale_every!r}")
+        if not isinstance(self.pt_affine, bool):
+            raise ValueError(f"pt_affine must be true or false, not {self.pt_affine!r}")
         if not (isinstance(self.pt_refine, int) and self.pt_refine >= 0):
             raise ValueError(f"pt_refine must be a whole number of steps, 0 or more, not {self.pt_refine!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):

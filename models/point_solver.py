@@ -48,6 +48,9 @@ class SolverSettings:
     # after the finest level, full weight back to every point the solved pose explains (residual
     # within the Huber threshold) and up to this many more steps there (`restore_explained`)
     refine: int = 0
+    # fit frame t's grey as a ref + b at every step (`brightness_fit`): an exposure change
+    # between the frames otherwise shifts every residual alike, and the solve trades it for motion
+    affine: bool = False
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -108,6 +111,16 @@ def huber_weights_at(r: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     return (k / r.abs().clamp(min=1e-12)).clamp(max=1.0)
 
 
+def affine_fit(ref: torch.Tensor, cur: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """a ref + b with the w-weighted mean and spread of cur, along the last axis. Matched moments
+    rather than a least-squares fit of cur on ref: far from the solution the two do not correlate,
+    a least-squares gain goes to 0 and the residual no longer depends on the pose."""
+    sw = w.sum(-1, keepdim=True).clamp(min=1e-30)
+    mr, mc = (w * ref).sum(-1, keepdim=True) / sw, (w * cur).sum(-1, keepdim=True) / sw
+    vr, vc = (w * (ref - mr) ** 2).sum(-1, keepdim=True) / sw, (w * (cur - mc) ** 2).sum(-1, keepdim=True) / sw
+    return torch.sqrt(vc.clamp(min=1e-30) / vr.clamp(min=1e-30)) * (ref - mr) + mc
+
+
 def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch.Tensor, stack: torch.Tensor,
              G: torch.Tensor, f: torch.Tensor, weight: torch.Tensor, w_ok: torch.Tensor, median_mask: torch.Tensor,
              half: torch.Tensor, last_cell: torch.Tensor, row_map: torch.Tensor, offsets: torch.Tensor,
@@ -138,11 +151,20 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
             smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))
         else:
             smp = sampling.grid_sample_shared(stack, grid, layout)  # (B,3,N)
-        nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
+        if s.affine:
+            # frame t's grey against a ref + b: fitted on every point in view, then again with the
+            # Huber weights of that fit's residuals (the threshold re-estimated from them)
+            cur, fit_w = smp[:, :1], ok * weight
+            nr = affine_fit(ref, cur, fit_w) - cur
+            if i % s.scale_every == 0:
+                k = huber_threshold(nr, ok * median_mask)
+            nr = affine_fit(ref, cur, fit_w * huber_weights_at(nr, k)) - cur
+        else:
+            nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
         Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
-        if i % s.scale_every == 0:
+        if i % s.scale_every == 0 and not s.affine:
             k = huber_threshold(nr, ok * median_mask)
         w = ok * weight * huber_weights_at(nr, k)
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
@@ -175,7 +197,7 @@ class _GaussNewtonLoop(torch.autograd.Function):
                  offsets, trips: int, s: SolverSettings, capacity: int, batch: int, images: int):
         out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
                    half, last_cell, row_map, offsets,
-                   trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping,
+                   trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping, affine_i=int(s.affine),
                    capacity_i=capacity, batch_i=batch, images_i=images, outputs=2)
         for o, like in zip(out, (P, active)):
             o.setType(like.type())
