@@ -135,11 +135,12 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 # weighted one explains the trusted points better by 0.005 and its rotation differs by more than
 # 0.05 degrees (pt_select, pt_select_rotation: chosen on the validation drives with
 # scripts/selection_rules.py below, docs/model-card.md), each point weighted by its confidence to
-# the fourth power (pt_conf_power, chosen on the validation drives at the end of this script), and
-# export from exactly that file
+# the fourth power (pt_conf_power, chosen on the validation drives at the end of this script),
+# frame t's grey matched to frame t-1's mean and spread at every step (pt_affine, chosen on the
+# validation drives at the end of this script), and export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
-  pt_select_rotation=0.05, pt_conf_power=4.0))"
+  pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
@@ -188,6 +189,11 @@ for s in heldout_09 heldout_10; do
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/rgb_onnx" --out "$OUT/eval/rgb_$s.txt" --overwrite
 done
 
+# the sweeps below were measured before pt_affine was chosen (last, at the end of this script), so
+# they start from the shipped file with it off
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  '$OUT/affine_off.pt', dict(pt_affine=False))"
+"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/affine_off"
 # the sweeps below select as the model card's tables of them: pt_select 0.01, no rotation gate
 SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
 # the static prior pt_conf_full (a point weighs 1 once its confidence reaches it), measured on the
@@ -195,10 +201,10 @@ SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
 [ -f "$OUT/data/val_static/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/val_static" --frames 100 --seed 601 \
   --size "$SIZE" --motion-from "$GT/05.txt" --motion-start 1800
 for s in val_traffic val_static; do
-  "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --method direct --onnx "$OUT/affine_off" --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 for c in 1 0.5 0.7 0.85; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/conf_full_$c" --set pt_conf_full=$c $SEL01
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/conf_full_$c" --set pt_conf_full=$c $SEL01
   for s in val_traffic val_static; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
       --overwrite
@@ -213,7 +219,7 @@ for spec in "602 03 300" "603 07 500" "604 06 200"; do
   static_drive "val_static_$((seed - 600))" "$seed" "$sq" "$start"
 done
 for p in 1 2 4 8; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/power_$p" --set pt_conf_power=$p $SEL01
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/power_$p" --set pt_conf_power=$p $SEL01
   for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_$p" --backend onnxruntime --threads 1 \
       --out "$OUT/eval/power_${p}_$s.txt" --overwrite
@@ -233,14 +239,14 @@ VAL=(val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static
 # the classical mode where the static prior's runs above have not scored it, power 4 (power_4)
 # where the power sweep has not
 for s in val_traffic_2 val_traffic_3 val_traffic_4 val_static_2 val_static_3 val_static_4 "${NEW[@]}"; do
-  "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --method direct --onnx "$OUT/affine_off" --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 for s in "${NEW[@]}"; do
   "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_4" --backend onnxruntime --threads 1 \
     --out "$OUT/eval/power_4_$s.txt" --overwrite
 done
 for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$set" $SEL01 --set "$set"
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/$set" $SEL01 --set "$set"
   for s in "${VAL[@]}"; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/$set" --backend onnxruntime --threads 1 --out "$OUT/eval/${set}_$s.txt" \
       --overwrite
@@ -253,17 +259,17 @@ for spec in "614 01 300" "615 03 500" "616 04 50" "617 06 600" "618 07 800" "619
   read -r seed sq start <<< "$spec"
   static_drive "val_static_$seed" "$seed" "$sq" "$start"
 done
-.venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+.venv/bin/python scripts/selection_rules.py --ckpt "$OUT/affine_off.pt" "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 # the same rules on the two held-out drives where the network loses to its classical mode (not used
 # for the choice): the demo's drive and seed 228
 [ -f "$OUT/data/demo_909/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/demo_909" --frames 220 --seed 909 --size "$SIZE"
-.venv/bin/python scripts/selection_rules.py "$OUT/data/demo_909" "$OUT/data/static_228"
+.venv/bin/python scripts/selection_rules.py --ckpt "$OUT/affine_off.pt" "$OUT/data/demo_909" "$OUT/data/static_228"
 # each drive's first pair from rest and from the cold start's guesses (docs/evaluation.md, the first pair)
 .venv/bin/python scripts/first_pairs.py "$OUT"/data/val_* "$OUT"/data/tr_00 "$OUT"/data/heldout_* "$OUT"/data/static_219 \
   "$OUT"/data/static_22[0-9] "$OUT"/data/traffic_3* "$OUT"/data/demo_909
 # the confidence read against the classical pose, as a gate in the graph (pt_select_unexplained;
 # docs/model-card.md), on the held-out drives: it does not ship
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/unexplained_0.15" --set pt_select_unexplained=0.15
+"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/unexplained_0.15" --set pt_select_unexplained=0.15
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2[12]? "$OUT"/data/static_23[01] "$OUT"/data/traffic_31[0-5] \
          "$OUT"/data/traffic_309 "$OUT"/data/demo_909; do
   "$D3LVO" run "$d" --onnx "$OUT/unexplained_0.15" --backend onnxruntime --threads 1 \
@@ -285,4 +291,17 @@ FRESH=(static_232 static_233 static_234 static_235 static_236 static_237 static_
 for s in "${FRESH[@]}"; do
   "$D3LVO" run "$OUT/data/$s" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/affine_off" --backend onnxruntime --threads 1 \
+    --out "$OUT/eval/affine_off_$s.txt" --overwrite
+  "$D3LVO" run "$OUT/data/$s" --method direct --onnx "$OUT/affine_off" --out "$OUT/eval/affine_off_direct_$s.txt" \
+    --overwrite
+done
+# frame t's grey matched to frame t-1's at every step (pt_affine), on the twenty-four validation
+# drives, the network and its classical mode with and without it (docs/evaluation.md): it ships
+for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
+  s=$(basename "$d")
+  "$D3LVO" run "$d" --onnx "$OUT/affine_off" --backend onnxruntime --threads 1 --out "$OUT/eval/affine_off_$s.txt" --overwrite
+  "$D3LVO" run "$d" --onnx "$OUT/affine_off" --method direct --out "$OUT/eval/affine_off_direct_$s.txt" --overwrite
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
+  "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
