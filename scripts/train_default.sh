@@ -149,11 +149,15 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 # held-out drives (seeds never trained on), static and with traffic, for docs/evaluation.md
 # static ones (seed, KITTI sequence, start); those from 221 on were rendered after the solver's
 # settings were fixed
-for spec in "219 09 800" "220 10 600" "221 09 400" "222 10 0" "223 09 1300" "224 10 900" "225 09 100" \
-            "226 10 200" "227 09 500" "228 10 400" "229 09 1000" "230 10 700" "231 09 1200"; do
-  read -r seed sq start <<< "$spec"
-  static_drive "static_$seed" "$seed" "$sq" "$start"
-done
+# static_drives "SEED KITTI_SEQ START"...: each into static_SEED
+static_drives() {
+  for spec in "$@"; do
+    read -r seed sq start <<< "$spec"
+    static_drive "static_$seed" "$seed" "$sq" "$start"
+  done
+}
+static_drives "219 09 800" "220 10 600" "221 09 400" "222 10 0" "223 09 1300" "224 10 900" "225 09 100" \
+  "226 10 200" "227 09 500" "228 10 400" "229 09 1000" "230 10 700" "231 09 1200"
 drive traffic_309 --frames 200 --seed 309 --motion-from "$GT/09.txt" --motion-start 200 --traffic 3
 drive traffic_310 --frames 200 --seed 310 --motion-from "$GT/10.txt" --motion-start 300 --traffic 5
 drive traffic_311 --frames 200 --seed 311 --motion-from "$GT/09.txt" --motion-start 900 --traffic 8
@@ -277,11 +281,8 @@ for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2[12]? "$OUT"/data/static_23[
 done
 # ten more static held-out drives and four with traffic, rendered after every setting of the bundled
 # model was fixed (docs/evaluation.md, fresh held-out drives)
-for spec in "232 09 50" "233 10 100" "234 09 650" "235 10 300" "236 09 900" "237 10 500" "238 09 1100" "239 10 800" \
-            "240 09 250" "241 10 1000"; do
-  read -r seed sq start <<< "$spec"
-  static_drive "static_$seed" "$seed" "$sq" "$start"
-done
+static_drives "232 09 50" "233 10 100" "234 09 650" "235 10 300" "236 09 900" "237 10 500" "238 09 1100" \
+  "239 10 800" "240 09 250" "241 10 1000"
 drive traffic_316 --frames 200 --seed 316 --motion-from "$GT/09.txt" --motion-start 600 --traffic 4
 drive traffic_317 --frames 200 --seed 317 --motion-from "$GT/10.txt" --motion-start 500 --traffic 6
 drive traffic_318 --frames 200 --seed 318 --motion-from "$GT/09.txt" --motion-start 1100 --traffic 3
