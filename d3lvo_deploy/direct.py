@@ -47,8 +47,8 @@ class DirectConfig:
     # restored weights are all 1 here, so that its classical mode stays this tracker)
     refine: int = 0
     points: PointConfig = field(default_factory=PointConfig)  # which LiDAR returns are tracked
-    # fit frame t's grey as a ref + b at every step (exposure changes; the network's `pt_affine`,
-    # docs/evaluation.md)
+    # match frame t's grey to frame t-1's mean and spread at every step (exposure changes; the
+    # network's `pt_affine`, docs/evaluation.md)
     affine_brightness: bool = False
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)

@@ -83,9 +83,9 @@ class D3LVOConfig:
     # threshold) weighs fully again, and up to this many more steps are taken there: the confidence
     # is read before the pose is known, and on a static scene its doubts only reweight good points
     pt_refine: int = 0
-    # fit frame t's grey as a ref + b at every Gauss-Newton step (both solves): an exposure change
-    # between the frames shifts every residual alike, and without the fit the solve can trade it
-    # for motion (docs/evaluation.md)
+    # match frame t's grey to frame t-1's mean and spread at every Gauss-Newton step (both
+    # solves): an exposure change shifts every residual alike, and without the match the solve
+    # can trade it for motion (docs/evaluation.md)
     pt_affine: bool = False
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02

@@ -48,7 +48,7 @@ class SolverSettings:
     # after the finest level, full weight back to every point the solved pose explains (residual
     # within the Huber threshold) and up to this many more steps there (`restore_explained`)
     refine: int = 0
-    # fit frame t's grey as a ref + b at every step (`brightness_fit`): an exposure change
+    # match frame t's grey to frame t-1's at every step (`affine_fit`): an exposure change
     # between the frames otherwise shifts every residual alike, and the solve trades it for motion
     affine: bool = False
 
