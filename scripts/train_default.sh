@@ -306,3 +306,5 @@ for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
+# the selection's thresholds again with pt_affine on, on the shipped checkpoint (docs/model-card.md)
+.venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*
