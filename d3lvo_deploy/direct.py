@@ -133,22 +133,19 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
             break
         Xt, uv, zi = Xt[ok], uv[ok], zi[ok]
         s = sample(lvl.stack, uv)
+        # with affine_brightness, frame t's grey against frame t-1's matched on every point in
+        # view, the Huber threshold from that, then matched again with the Huber weights, as the
+        # network's solver does
+        cur = s[:, 0]
+        r = cur - (affine_fit(ref[ok], cur, np.ones_like(cur)) if cfg.affine_brightness else ref[ok])
+        if i % cfg.scale_every == 0:
+            k = huber_threshold(r)
         if cfg.affine_brightness:
-            # fitted on every point in view, then again with the Huber weights of that fit's
-            # residuals (the threshold re-estimated from them), as the network's solver does
-            cur = s[:, 0]
-            r = cur - affine_fit(ref[ok], cur, np.ones_like(cur))
-            if i % cfg.scale_every == 0:
-                k = huber_threshold(r)
             r = cur - affine_fit(ref[ok], cur, huber_weights(r, k))
-        else:
-            r = s[:, 0] - ref[ok]
         # d residual / d point = grad . d pixel / d point; rotation part = X' x a (left perturbation)
         a = np.stack([s[:, 1] * fx * zi, s[:, 2] * fy * zi,
                       -(s[:, 1] * fx * Xt[:, 0] + s[:, 2] * fy * Xt[:, 1]) * zi * zi], 1)
         J = np.concatenate([a, np.cross(Xt, a)], 1)
-        if i % cfg.scale_every == 0 and not cfg.affine_brightness:
-            k = huber_threshold(r)
         Jw = J * huber_weights(r, k)[:, None]
         H, g = Jw.T @ J, Jw.T @ r
         H[np.diag_indices(6)] *= 1.0 + cfg.damping

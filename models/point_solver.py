@@ -151,21 +151,18 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
             smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))
         else:
             smp = sampling.grid_sample_shared(stack, grid, layout)  # (B,3,N)
+        # minus the residual: the normal equations come out as [H | -g]; with s.affine, frame t's
+        # grey against frame t-1's matched on every point in view, the Huber threshold from that,
+        # then matched again with the Huber weights
+        cur = smp[:, :1]
+        nr = (affine_fit(ref, cur, ok * weight) if s.affine else ref) - cur
+        if i % s.scale_every == 0:
+            k = huber_threshold(nr, ok * median_mask)
         if s.affine:
-            # frame t's grey against a ref + b: fitted on every point in view, then again with the
-            # Huber weights of that fit's residuals (the threshold re-estimated from them)
-            cur, fit_w = smp[:, :1], ok * weight
-            nr = affine_fit(ref, cur, fit_w) - cur
-            if i % s.scale_every == 0:
-                k = huber_threshold(nr, ok * median_mask)
-            nr = affine_fit(ref, cur, fit_w * huber_weights_at(nr, k)) - cur
-        else:
-            nr = ref - smp[:, :1]  # minus the residual: the normal equations come out as [H | -g]
+            nr = affine_fit(ref, cur, ok * weight * huber_weights_at(nr, k)) - cur
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
         a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
         Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
-        if i % s.scale_every == 0 and not s.affine:
-            k = huber_threshold(nr, ok * median_mask)
         w = ok * weight * huber_weights_at(nr, k)
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # damped diagonal (1 + damping) diag(H) + 1e-12; a stopped level (no points left, say an

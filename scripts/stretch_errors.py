@@ -17,17 +17,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from d3lvo_deploy.geometry import relatives
 from d3lvo_deploy.poses import read_poses
-
-
-def pair_motions(poses: np.ndarray) -> np.ndarray:
-    """(N-1,4,4) motion of frame i+1 in frame i."""
-    return np.linalg.inv(poses[:-1]) @ poses[1:]
 
 
 def translation_errors(gt: np.ndarray, est: np.ndarray) -> np.ndarray:
     """(N-1,) |translation of gt_i^-1 est_i| per pair: how far the estimated step lands from the true one."""
-    return np.linalg.norm((np.linalg.inv(pair_motions(gt)) @ pair_motions(est))[:, :3, 3], axis=1)
+    return np.linalg.norm((np.linalg.inv(relatives(gt)) @ relatives(est))[:, :3, 3], axis=1)
 
 
 def moving_share(drive: Path, n: int) -> np.ndarray:
@@ -50,7 +46,7 @@ def main(drive: Path, estimates: list[Path], every: int) -> None:
         if len(est) != len(gt):
             sys.exit(f"{e}: {len(est)} poses, but {drive / 'poses.txt'} has {len(gt)}")
         errors[e.name] = translation_errors(gt, est)
-    step = np.linalg.norm(pair_motions(gt)[:, :3, 3], axis=1)
+    step = np.linalg.norm(relatives(gt)[:, :3, 3], axis=1)
     share = moving_share(drive, len(gt))
     print("pairs      moving  step m  " + "  ".join(f"{name} m" for name in errors))
     for s in range(0, len(step), every):

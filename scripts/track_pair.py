@@ -19,6 +19,7 @@ import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry, motion_cost, track
+from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.sequence import KittiSequence
@@ -32,8 +33,7 @@ def main(drive: str, i: int, affine: bool) -> None:
     odo = DirectOdometry(seq.calib, cfg)
     a, b = odo._frame(seq.image(i), seq.scan(i)), odo._frame(seq.image(i + 1), seq.scan(i + 1))
     G = read_poses(f"{drive}/poses.txt").poses
-    T = seq.calib.T_cam0_cam2
-    truth = np.linalg.inv(T) @ np.linalg.inv(G[i]) @ G[i + 1] @ T  # image_2 motion, frame i+1 in frame i
+    truth = change_frame(relative(G[i], G[i + 1]), seq.calib.T_cam2_cam0)  # image_2 motion, frame i+1 in frame i
     short = truth.copy()
     short[:3, 3] *= 0.98
     print(f"pair {i}-{i + 1}: {len(a.points)} points, true step {np.linalg.norm(truth[:3, 3]):.3f} m, "
