@@ -125,6 +125,14 @@ class PointPose(nn.Module):
             conf = torch.clamp(conf / self.cfg.pt_conf_full, max=1.0)
         return solver["point_mask1"] * conf ** self.cfg.pt_conf_power
 
+    def distrusted_against(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
+                           invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, motion: torch.Tensor,
+                           solver: dict) -> torch.Tensor:
+        """(B,) `distrusted_share` of the confidence read with `motion` as the motion its evidence is
+        measured against (rather than the pair's start)."""
+        logits = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, motion)
+        return distrusted_share(self.point_weights(torch.sigmoid(-logits), solver, K), solver["point_mask1"])
+
     def pyramids(self, solver: dict) -> tuple[list, list]:
         """Both frames' image pyramids for `solve`: the exported graph's inputs where `solver` has
         them, else made from its grey images (training)."""
@@ -169,8 +177,8 @@ class PointPose(nn.Module):
                 # the evidence read again against the classical pose: what it leaves unexplained
                 # (a start far off makes a static scene look as if it moved; the classical pose
                 # does not, unless it followed something that moves)
-                again = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, classical)
-                unexplained = distrusted_share(self.point_weights(torch.sigmoid(-again), solver, K), mask)
+                unexplained = self.distrusted_against(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, classical,
+                                                      solver)
                 keep = keep & (unexplained > self.cfg.pt_select_unexplained)
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline

@@ -70,14 +70,6 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
                                     weight * halves[1 - i], K)[0]) for i in (0, 1))
 
 
-def distrusted_against(pose: pose_points.PointPose, args: tuple, motion: torch.Tensor) -> float:
-    """`distrusted_share` of the confidence whose evidence is read against `motion` instead of the
-    pair's start (args: `PointPose.forward`'s)."""
-    hidden, flow, feat1, feat2, invdepth1, invdepth2, K, _, solver = args
-    logits = pose.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, motion)
-    return distrusted_share(pose.point_weights(torch.sigmoid(-logits), solver, K), solver["point_mask1"])
-
-
 def record_pairs(model, drive: str) -> list[dict]:
     """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1), the
     share of the points the network distrusts, the gain held out, the share it distrusts against C."""
@@ -92,7 +84,7 @@ def record_pairs(model, drive: str) -> list[dict]:
                               share=distrusted_share(out["point_weights"], args[-1]["point_mask1"]),
                               held_out=held_out_gain(self, args[7], args[-1], out["point_weights"],
                                                      out["classical"]),
-                              unexplained=distrusted_against(self, args, out["classical"])))
+                              unexplained=float(self.distrusted_against(*args[:7], out["classical"], args[-1])[0])))
         return out
 
     pose_points.PointPose.forward = recording
