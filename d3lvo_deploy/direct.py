@@ -7,7 +7,9 @@ pyrDown levels, is sampled where the points project, and Gauss-Newton on SE(3) m
 photometric difference, coarse to fine, up to `iterations` steps per level with an early stop,
 from a constant-velocity start (the first pair from several, `cold_start`). The robust weight is Huber's with its threshold re-estimated
 from the residuals every third step (1.345 x the MAD scale), so it follows the scene instead of a
-fixed threshold that suits one exposure and one amount of noise.
+fixed threshold that suits one exposure and one amount of noise. With `fine_restart` the finest
+level is also solved alone from the start, and that motion is kept where it explains the points
+better (`consensus_gain`): a quarter-size level can hold a wrong minimum the finest cannot leave.
 
 `DirectOdometry.register_frame(image, points)` reads as the algorithm; it has the streaming
 interface of `Odometry` (`step`, `prime`, `reset`, `pose`), so `d3lvo run --method direct`
@@ -50,6 +52,12 @@ class DirectConfig:
     # match frame t's grey to frame t-1's mean and spread at every step (exposure changes; the
     # network's `pt_affine`, docs/evaluation.md)
     affine_brightness: bool = False
+    # above 0: also solve the finest level alone from the start, and keep that motion where it
+    # explains frame t-1's points better than coarse to fine's by more than this
+    # (`consensus_gain`): a coarse level (a quarter of the image's width) can hold a wrong minimum,
+    # and a constant-velocity start is near the truth at 10 Hz (the network's `pt_fine_restart`,
+    # docs/evaluation.md)
+    fine_restart: float = 0.0
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
 
@@ -63,7 +71,8 @@ class DirectConfig:
         return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
                    damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
                    refine=model_config.get("pt_refine", 0), points=point_config(model_config),
-                   affine_brightness=bool(model_config.get("pt_affine", False)))
+                   affine_brightness=bool(model_config.get("pt_affine", False)),
+                   fine_restart=float(model_config.get("pt_fine_restart", 0.0)))
 
 
 @dataclass
@@ -180,7 +189,42 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
         M = align_level(M, X, ref, cur.levels[lvl], cfg.iterations[cfg.levels - 1 - lvl], cfg)
     if cfg.refine:
         M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
-    return se3_inv(M)
+    A = se3_inv(M)
+    if cfg.fine_restart > 0 and cfg.levels > 1:
+        M = align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)
+        if cfg.refine:
+            M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
+        if consensus_gain(prev, cur, se3_inv(M), A) > cfg.fine_restart:
+            A = se3_inv(M)
+    return A
+
+
+def consensus_gain(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray, B: np.ndarray, cap: float = 2.0) -> float:
+    """How much better the image_2 motion A explains frame t-1's points than B: the mean over the
+    points in view under both of min(r^2, c^2) under B minus the same under A, c = `cap` robust
+    sigmas (1.4826 x the smaller median |r| of the two), in units of c^2 (RANSAC's MSAC cost; the
+    network's `models.point_solver.consensus_gain` with every weight 1). A median alone scores a
+    pose stuck near its start in rotation below the truth on some static pairs; the capped mean
+    does not (docs/evaluation.md)."""
+    finest, X = prev.levels[0], prev.points
+    ref = sample(finest.stack[..., :1], project(X, finest.K)[0])[:, 0]
+    h, w = cur.levels[0].shape
+
+    def residuals(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        M = se3_inv(A)
+        Xt = X @ M[:3, :3].T + M[:3, 3]
+        front = Xt[:, 2] > 0.1
+        uv, _ = project(np.where(front[:, None], Xt, 1.0), finest.K)
+        seen = front & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        return sample(cur.levels[0].stack[..., :1], np.where(seen[:, None], uv, 0.0))[:, 0] - ref, seen
+
+    (r, seen), (r_b, seen_b) = residuals(A), residuals(B)
+    ok = seen & seen_b
+    if not ok.any():
+        return 0.0
+    r, r_b = r[ok], r_b[ok]
+    limit = max(cap * MAD_TO_SIGMA * min(np.median(np.abs(r)), np.median(np.abs(r_b))), 1e-6) ** 2
+    return float(np.mean(np.minimum(r_b * r_b / limit, 1.0) - np.minimum(r * r / limit, 1.0)))
 
 
 def first_motion(prev: TrackedFrame, cur: TrackedFrame, cfg: DirectConfig) -> np.ndarray:

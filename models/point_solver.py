@@ -2,7 +2,8 @@
 
 Frame t-1's textured LiDAR returns (`d3lvo_deploy.points.textured_points`, a fixed-length list with
 a mask) are moved by the running motion, projected into frame t's grey image and its pyrDown
-levels, and the photometric residual is minimised coarse to fine. Each level re-estimates a Huber
+levels, and the photometric residual is minimised coarse to fine (with `fine_restart`, the finest
+level also alone from the start, the better-explaining pose kept). Each level re-estimates a Huber
 threshold from the residuals' median (1.345 x 1.4826 x MAD, every `scale_every` steps), takes up to `iterations[l]`
 damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps; the
 steps run in blocks of `scale_every`, and at a block boundary after the stop PyTorch breaks and
@@ -51,6 +52,11 @@ class SolverSettings:
     # match frame t's grey to frame t-1's at every step (`affine_fit`): an exposure change
     # between the frames otherwise shifts every residual alike, and the solve trades it for motion
     affine: bool = False
+    # above 0: also solve the finest level alone from the start, and keep that pose where it
+    # explains the points better by more than this (`consensus_gain`): a coarse level can hold a
+    # wrong minimum that the finest level then cannot leave, and a constant-velocity start is
+    # near the truth at 10 Hz
+    fine_restart: float = 0.0
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -264,6 +270,45 @@ def restore_explained(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, ref: to
     return torch.where((r.abs() <= k) & (ok > 0), mask, weight)
 
 
+def _matrix(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The relative pose A (frame t in frame t-1, (B,4,4)) of the solver's R, t (frame t-1 points
+    into frame t)."""
+    bottom = torch.cat([torch.zeros_like(t), torch.ones_like(t[..., :1])], -1)  # (B,1,4)
+    return gn.invert(torch.cat([torch.cat([R, t.transpose(1, 2)], -1), bottom], 1))
+
+
+def _refined(R, t, points, ref, stack, K, weight, median_mask, mask, s: SolverSettings, default_median: bool):
+    """`s.refine` more steps after the finest level, with full weight back on the points R, t
+    explain (`restore_explained`)."""
+    mask = (weight > 0).to(weight.dtype) if mask is None else mask
+    weight = restore_explained(R, t, points, ref, stack, K, weight, mask, median_mask)
+    median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
+    return align_level(R, t, points, ref, stack, K, weight, median_mask, s.refine, s)
+
+
+def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask, init, k: int, s: SolverSettings,
+                         default_median: bool, grey1: torch.Tensor) -> torch.Tensor:
+    """The finest level from the coarser levels' pose R, t and, in the same batch, alone from the
+    start `init` (`DirectConfig.fine_restart`); (B,4,4): the restart's pose where it explains the
+    points the solve trusts better by more than `s.fine_restart` (`consensus_gain`), else the
+    coarse-to-fine one. One batch rather than a second solve: a step's time is per-op overhead, so
+    twice the rows cost about what one does. Rows per pair: its k coarse-to-fine solves, then their
+    k restarts, on one copy of its images."""
+    def two(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        return torch.cat([a.reshape(-1, k, *a.shape[1:]), b.reshape(-1, k, *b.shape[1:])], 1).flatten(0, 1)
+
+    M = gn.invert(init)
+    X, r, K2, w, med = (two(x, x) for x in (points, ref, K, weight, median_mask))
+    R2, t2 = align_level(two(R, M[:, :3, :3]), two(t, M[:, :3, 3].unsqueeze(1)), X, r, stack, K2, w, med,
+                         s.iterations[-1], s)
+    if s.refine > 0:
+        R2, t2 = _refined(R2, t2, X, r, stack, K2, w, med, None if mask is None else two(mask, mask), s, default_median)
+    A = _matrix(R2, t2).reshape(-1, 2, k, 4, 4)
+    coarse_to_fine, restart = A[:, 0].flatten(0, 1), A[:, 1].flatten(0, 1)
+    better = consensus_gain(restart, coarse_to_fine, grey1, stack, points, weight, K) > s.fine_restart
+    return torch.where(better[:, None, None], restart, coarse_to_fine)
+
+
 @full_precision
 def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tensor, grey2: torch.Tensor,
                    points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor, cap: float = 2.0) -> torch.Tensor:
@@ -333,7 +378,6 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
     M = gn.invert(init)
     R, t = M[:, :3, :3], M[:, :3, 3].unsqueeze(1)
-    bottom = init[:, 3:, :]
     out = []
     for i, lvl in enumerate(reversed(range(len(s.iterations)))):
         Kl = K * (0.5 ** lvl)  # level pixel x sits on source pixel 2^lvl x (pyrDown)
@@ -344,11 +388,12 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
         first = (points[::k], Kl[::k]) if k > 1 else (points, Kl)
         ref = sample_at(grey1[lvl], project(*first)[0], inside=lvl == 0)[:, 0]
         ref = ref.unsqueeze(1).expand(-1, k, -1).flatten(0, 1) if k > 1 else ref
+        if lvl == 0 and s.fine_restart > 0 and len(s.iterations) > 1:
+            out.append(_finest_with_restart(R, t, points, ref, stack2[0], Kl, weight, median_mask, mask, init, k,
+                                            s, default_median, grey1[0]))
+            continue
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         if lvl == 0 and s.refine > 0:
-            mask = (weight > 0).to(weight.dtype) if mask is None else mask
-            weight = restore_explained(R, t, points, ref, stack2[0], Kl, weight, mask, median_mask)
-            median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
-            R, t = align_level(R, t, points, ref, stack2[0], Kl, weight, median_mask, s.refine, s)
-        out.append(gn.invert(torch.cat([torch.cat([R, t.transpose(1, 2)], -1), bottom], 1)))
+            R, t = _refined(R, t, points, ref, stack2[0], Kl, weight, median_mask, mask, s, default_median)
+        out.append(_matrix(R, t))
     return out

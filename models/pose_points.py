@@ -79,7 +79,7 @@ class PointPose(nn.Module):
         looks = cfg.flow_hidden[1] + cfg.feature_widths[self.level] if cfg.pt_conf_inputs == "all" else 0
         self.moving = MovingLogits(2 + 1 + 3 + looks)
         self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every,
-                                        cfg.pt_refine, cfg.pt_affine)
+                                        cfg.pt_refine, cfg.pt_affine, cfg.pt_fine_restart)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                       invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,

@@ -1,13 +1,17 @@
 """The classical tracker on one frame pair of a drive, started from the true motion and from rest.
 
-    .venv/bin/python scripts/track_pair.py DRIVE I [--affine-brightness]
+    .venv/bin/python scripts/track_pair.py DRIVE I [--affine-brightness] [--static-only]
 
 Tracks frame I+1 against frame I's LiDAR points with the bundled model's classical mode (`--method
 direct`, `DirectConfig.of_model`), from the drive's true motion (`poses.txt`), from 98 % of it and
 from rest, and prints where each start ends and the pair's photometric cost there
 (`direct.motion_cost`: median residual after a gain and offset fit, lower is better). A solve
 that leaves the true motion for a pose of higher cost is the solver's objective failing, not its
-start; `--affine-brightness` refits frame t's grey as a ref + b at every step.
+start; `--affine-brightness` refits frame t's grey as a ref + b at every step. Then, from the true
+motion without the finest level's restart (`fine_restart`), coarse to fine on all levels, on the
+two finest and on the finest alone: a pyramid level that holds a wrong minimum shows there.
+`--static-only` keeps only the points on pixels that frame I's motion mask (`motion_2/`, drives
+rendered with `--traffic`) marks static: whether what moves is to blame.
 """
 
 from __future__ import annotations
@@ -15,23 +19,32 @@ from __future__ import annotations
 import sys
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, motion_cost, track
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, motion_cost, track
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
+from d3lvo_deploy.points import project
 from d3lvo_deploy.sequence import KittiSequence
 
 
-def main(drive: str, i: int, affine: bool) -> None:
+def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
     seq = KittiSequence.open(drive)
     if not 0 <= i < len(seq) - 1:
         sys.exit(f"{drive}: frame {i} has no next frame ({len(seq)} frames)")
     cfg = replace(DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]), affine_brightness=affine)
     odo = DirectOdometry(seq.calib, cfg)
     a, b = odo._frame(seq.image(i), seq.scan(i)), odo._frame(seq.image(i + 1), seq.scan(i + 1))
+    if static_only:
+        moving = cv2.imread(f"{drive}/motion_2/{i:06d}.png", cv2.IMREAD_GRAYSCALE)
+        if moving is None:
+            sys.exit(f"{drive}/motion_2/{i:06d}.png: no motion mask (render the drive with --traffic)")
+        uv = np.rint(project(a.points, a.levels[0].K)[0]).astype(int)
+        uv = np.clip(uv, 0, [moving.shape[1] - 1, moving.shape[0] - 1])
+        a = TrackedFrame(a.levels, a.points[moving[uv[:, 1], uv[:, 0]] == 0])
     G = read_poses(f"{drive}/poses.txt").poses
     truth = change_frame(relative(G[i], G[i + 1]), seq.calib.T_cam2_cam0)  # image_2 motion, frame i+1 in frame i
     short = truth.copy()
@@ -42,10 +55,16 @@ def main(drive: str, i: int, affine: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
+    # where the pyramid loses it: from the true motion without the restart, on the finest levels only
+    for n in range(cfg.levels, 0, -1):
+        c = replace(cfg, levels=n, iterations=cfg.iterations[-n:], fine_restart=0.0)
+        A = track(TrackedFrame(a.levels[:n], a.points), TrackedFrame(b.levels[:n], b.points), truth, c)
+        print(f"from the true motion, the {n} finest level(s), no restart -> step {np.linalg.norm(A[:3, 3]):.3f} m, "
+              f"{np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m off, cost {motion_cost(a, b, A):.4f}")
 
 
 if __name__ == "__main__":
-    args = [a for a in sys.argv[1:] if a != "--affine-brightness"]
+    args = [a for a in sys.argv[1:] if a not in ("--affine-brightness", "--static-only")]
     if len(args) != 2 or not args[1].isdigit():
         sys.exit(__doc__)
-    main(args[0], int(args[1]), "--affine-brightness" in sys.argv)
+    main(args[0], int(args[1]), "--affine-brightness" in sys.argv, "--static-only" in sys.argv)

@@ -3,6 +3,8 @@ tracker (written separately), cv2, hand-built geometry and its own ONNX export."
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import onnx
@@ -11,7 +13,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from d3lvo_deploy.cold_start import ColdStartConfig  # noqa: E402
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry  # noqa: E402
+from d3lvo_deploy import direct  # noqa: E402
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, track  # noqa: E402
 from d3lvo_deploy.geometry import (axis_angle_to_rot, make_se3, rotation_angle, rotation_angle_precise,  # noqa: E402
                                    se3_inv)
 from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points, solver_pyramid,  # noqa: E402
@@ -19,8 +22,8 @@ from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points,
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.gauss_newton import gauss_jordan, so3_exp_small  # noqa: E402
 from models import gauss_newton as gn  # noqa: E402
-from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, masked_median, project, rotations_differ,  # noqa: E402
-                                 pyr_down, restore_explained, sample_at, solve, with_gradients)
+from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, masked_median,  # noqa: E402
+                                 project, pyr_down, rotations_differ, restore_explained, sample_at, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
@@ -434,16 +437,59 @@ def test_confidence_one_is_the_numpy_tracker(scale_every, refine, affine):
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
 
 
+def test_fine_restart_is_the_numpy_trackers():
+    """On a real frame pair where solving the finest level alone from the constant-velocity start
+    explains the points better than coarse to fine (it moves the motion by over 1 cm), the solver
+    with every confidence 1 keeps the same motion as the numpy tracker's `fine_restart` (float64,
+    its own cost in numpy) within 1e-6 m."""
+    seq = _real_pair()
+    cfg = DirectConfig(affine_brightness=True, fine_restart=0.005)
+    odo = DirectOdometry(seq.calib, cfg)
+    for i in (10, 11):
+        odo.register_frame(seq.image(i), seq.scan(i))
+    init, prev = odo.motion2.copy(), odo._prev
+    cur = odo._frame(seq.image(12), seq.scan(12))
+    want = track(prev, cur, init, cfg)
+    coarse_to_fine = track(prev, cur, init, replace(cfg, fine_restart=0.0))
+    assert np.linalg.norm(want[:3, 3] - coarse_to_fine[:3, 3]) > 0.01  # the restart is kept here
+    pts, mask = pad_points(prev.points, cfg.points.capacity)
+    images = [_t(grey_image(seq.image(i)))[None, None] for i in (11, 12)]
+    got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
+                SolverSettings(cfg.iterations, affine=True, fine_restart=0.005))[-1][0].numpy()
+    assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
+
+
+def test_consensus_gain_is_the_numpy_trackers():
+    """The runtime's numpy `direct.consensus_gain` (which picks the classical mode's fine restart)
+    is the graph's `consensus_gain` with every weight 1, on a real pair for three pairs of motions
+    (rest, a guess, the tracked motion), both ways round; swapped, the gain changes sign."""
+    seq = _real_pair()
+    odo = DirectOdometry(seq.calib, DirectConfig())
+    prev, cur = odo._frame(seq.image(11), seq.scan(11)), odo._frame(seq.image(12), seq.scan(12))
+    pts, mask = pad_points(prev.points, 2048)
+    g0, g1 = (_t(f.levels[0].stack[..., 0])[None, None] for f in (prev, cur))
+    rest, guess = np.eye(4), make_se3(axis_angle_to_rot([0, 0.01, 0]), [0.0, 0.0, 0.5])
+    tracked = track(prev, cur, rest, DirectConfig())
+    for A, B in ((tracked, rest), (tracked, guess), (guess, rest)):
+        want = direct.consensus_gain(prev, cur, A, B)
+        got = float(consensus_gain(_t(A)[None], _t(B)[None], g0, g1, _t(pts), _t(mask), _k(seq.calib.K2))[0])
+        assert got == pytest.approx(want, abs=1e-5)
+        assert direct.consensus_gain(prev, cur, B, A) == pytest.approx(-want, abs=1e-9)
+    assert direct.consensus_gain(prev, cur, tracked, rest) > 0.02  # the tracked motion explains the pair better
+
+
 @pytest.fixture(scope="session")
 def points_model(tmp_path_factory):
     """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 6 Gauss-Newton steps per
     level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
-    constant-velocity start still converge on the test drive's small motions."""
+    constant-velocity start still converge on the test drive's small motions. With the finest
+    level's restart from the start, as the bundled model, so that its graphs are tested too."""
     from conftest import built_once, make_checkpoint
     from export.onnx_export import ExportConfig, export_checkpoint
 
     d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
-        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6)), ExportConfig(out=d / "onnx")))
+        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6), pt_fine_restart=0.001),
+        ExportConfig(out=d / "onnx")))
     return d / "ck.pt", d / "onnx"
 
 
@@ -473,7 +519,8 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
     of two pairs (different start motions, so their levels stop at different blocks) gives each
     pair the pose it gets alone. With `pt_select` each pair is solved twice (weighted and
     classical) on one copy of its images: batch rows 2i, 2i + 1 must read pair i's (the
-    refinement's check of the solved pose, `pt_refine`, too). A batch whose pairs keep different
+    refinement's check of the solved pose, `pt_refine`, and the fixture's finest-level restart
+    from the start, `pt_fine_restart`, too). A batch whose pairs keep different
     solves, one the weighted and one the classical, is
     `test_rotation_gate_in_the_exported_graphs_pair_by_pair`."""
     import onnxruntime as ort
@@ -511,7 +558,6 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     With the rotation threshold between the two angles, the exported graphs keep the weighted pose
     of the pair whose rotations differ more and the classical pose of the other, alone and in the
     batch, in both graphs, and the next start is the weighted pose either way."""
-    from dataclasses import replace
 
     import onnxruntime as ort
 
@@ -568,6 +614,8 @@ def test_direct_method_is_the_models_classical_mode(points_model):
     assert dc.points.capacity == 999 and dc.points.min_gradient == 0.05
     assert dc.stop_step == 3e-5 and dc.damping == 7e-3
     assert DirectConfig.of_model(cfg).iterations == (6, 6, 6)  # the fixture's
+    assert DirectConfig.of_model(cfg).fine_restart == 0.001 and DirectConfig.of_model(
+        {**cfg, "pt_fine_restart": 0.0}).fine_restart == 0.0
     from models.config import D3LVOConfig
 
     defaults = D3LVOConfig.small(pose_head="points").to_dict()
@@ -577,8 +625,10 @@ def test_direct_method_is_the_models_classical_mode(points_model):
 def test_export_set_reaches_the_graph(points_model, tmp_path):
     """`d3lvo export --set` changes the exported solver, not only the manifest: a median (one
     TopK) at every pt_scale_every-th step of a level, so the fixture's (6, 6, 6) with the default
-    3 (steps 0 and 3) gives 6 TopK nodes and pt_iters=3,2 with pt_scale_every=1 gives 5; the point
-    list is pt_capacity long. A Loop's TopKs count once per trip it may take (its trip-count input)."""
+    3 (steps 0 and 3) gives 6 TopK nodes, and its finest-level restart two more (the two poses'
+    robust scales in `consensus_gain`; the restart's steps run in the same batch); pt_iters=3,2
+    with pt_scale_every=1 and pt_fine_restart=0 gives 5; the point list is pt_capacity long. A
+    Loop's TopKs count once per trip it may take (its trip-count input)."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -595,13 +645,15 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
         return topks(g), points.type.tensor_type.shape.dim[1].dim_value
 
     ck, default_dir = points_model
-    assert topk_and_capacity(default_dir) == (6, 2048)
+    assert topk_and_capacity(default_dir) == (6 + 2, 2048)
     r = CliRunner().invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_iters=3,2",
-                                 "--set", "pt_capacity=512", "--set", "pt_stop=3e-5", "--set", "pt_scale_every=1"])
+                                 "--set", "pt_capacity=512", "--set", "pt_stop=3e-5", "--set", "pt_scale_every=1",
+                                 "--set", "pt_fine_restart=0"])
     assert r.exit_code == 0, r.output
     assert topk_and_capacity(tmp_path / "o") == (5, 512)
     m = load_manifest(tmp_path / "o")["model_config"]
-    assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"], m["pt_scale_every"]) == ([3, 2], 512, 3e-5, 1)
+    assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"], m["pt_scale_every"], m["pt_fine_restart"]) == \
+        ([3, 2], 512, 3e-5, 1, 0.0)
 
 
 def test_no_points_no_motion_beyond_the_start():
