@@ -137,10 +137,12 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 # scripts/selection_rules.py below, docs/model-card.md), each point weighted by its confidence to
 # the fourth power (pt_conf_power, chosen on the validation drives at the end of this script),
 # frame t's grey matched to frame t-1's mean and spread at every step (pt_affine, chosen on the
-# validation drives at the end of this script), and export from exactly that file
+# validation drives at the end of this script), the finest level also solved alone from the start
+# and kept where it explains the points better by 0.001 (pt_fine_restart, chosen on the validation
+# drives at the end of this script), and export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
-  pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True))"
+  pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True, pt_fine_restart=0.001))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
@@ -308,3 +310,23 @@ for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
 done
 # the selection's thresholds again with pt_affine on, on the shipped checkpoint (docs/model-card.md)
 .venv/bin/python scripts/selection_rules.py "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+# the finest level also solved alone from the start, kept where it explains the points better by
+# more than the threshold (pt_fine_restart; docs/evaluation.md), on the twenty-four validation
+# drives: the classical mode at 0.005, 0.02 and 0.001, the network at 0.005 and 0.001; 0.001 ships
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  '$OUT/restart_off.pt', dict(pt_fine_restart=0.0))"
+for t in 0.005 0.02 0.001; do
+  "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --set pt_fine_restart=$t
+  for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
+    s=$(basename "$d")
+    "$D3LVO" run "$d" --onnx "$OUT/restart_$t" --method direct --out "$OUT/eval/restart_${t}_direct_$s.txt" --overwrite
+    [ "$t" = 0.02 ] || "$D3LVO" run "$d" --onnx "$OUT/restart_$t" --backend onnxruntime --threads 1 \
+      --out "$OUT/eval/restart_${t}_$s.txt" --overwrite
+  done
+done
+# then the held-out drives again, the shipped model and its classical mode (docs/evaluation.md)
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
+  s=$(basename "$d")
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
+  "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
+done
