@@ -47,6 +47,22 @@ def candidate_starts(cfg: ColdStartConfig) -> list[np.ndarray]:
     return starts
 
 
+def motion_samples(grey1: np.ndarray, points1: np.ndarray, grey2: np.ndarray, K: np.ndarray,
+                   A: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) float32 grey1 at frame t-1's points X, (N,) grey2 at pi(M X) (0 where outside), and (N,)
+    whether M X lands in front of frame t's camera and inside its image; M = A^-1 (A: frame t in
+    frame t-1, image_2). What a cost of the motion A compares."""
+    M = se3_inv(A)
+    X2 = points1 @ M[:3, :3].T + M[:3, 3]
+    front = X2[:, 2] > 0.1
+    uv2, _ = project(np.where(front[:, None], X2, 1.0), K)
+    h, w = grey2.shape
+    inside = front & (uv2[:, 0] >= 0) & (uv2[:, 0] <= w - 1) & (uv2[:, 1] >= 0) & (uv2[:, 1] <= h - 1)
+    ref = bilinear(np.ascontiguousarray(grey1, np.float32), project(points1, K)[0])
+    seen = bilinear(np.ascontiguousarray(grey2, np.float32), np.where(inside[:, None], uv2, 0.0))
+    return ref, np.where(inside, seen, 0.0).astype(np.float32), inside
+
+
 def photometric_cost(grey1: np.ndarray, points1: np.ndarray, grey2: np.ndarray, K: np.ndarray,
                      A: np.ndarray, min_points: int = 12) -> float:
     """Median |grey2(pi(M X)) - (a grey1(pi(X)) + b)| over frame t-1's points X that land in frame
@@ -57,16 +73,10 @@ def photometric_cost(grey1: np.ndarray, points1: np.ndarray, grey2: np.ndarray, 
     does not decide it. inf where fewer than `min_points` land in view."""
     if len(points1) < min_points:
         return float("inf")
-    M = se3_inv(A)
-    X2 = points1 @ M[:3, :3].T + M[:3, 3]
-    front = X2[:, 2] > 0.1
-    uv2, _ = project(np.where(front[:, None], X2, 1.0), K)
-    h, w = grey2.shape
-    inside = front & (uv2[:, 0] >= 0) & (uv2[:, 0] <= w - 1) & (uv2[:, 1] >= 0) & (uv2[:, 1] <= h - 1)
+    ref, seen, inside = motion_samples(grey1, points1, grey2, K, A)
     if inside.sum() < min_points:
         return float("inf")
-    ref = bilinear(np.ascontiguousarray(grey1, np.float32), project(points1[inside], K)[0]).astype(np.float64)
-    seen = bilinear(np.ascontiguousarray(grey2, np.float32), uv2[inside]).astype(np.float64)
+    ref, seen = ref[inside].astype(np.float64), seen[inside].astype(np.float64)
     dr = ref - ref.mean()
     gain = float(dr @ (seen - seen.mean()) / (dr @ dr)) if dr @ dr > 1e-12 else 0.0
     return float(np.median(np.abs(seen - seen.mean() - gain * dr)))

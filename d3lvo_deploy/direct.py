@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from .calib import Calib
-from .cold_start import ColdStartConfig, best_start, candidate_starts, photometric_cost
+from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
@@ -194,8 +194,9 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
         M = align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)
         if cfg.refine:
             M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
-        if consensus_gain(prev, cur, se3_inv(M), A) > cfg.fine_restart:
-            A = se3_inv(M)
+        restart = se3_inv(M)
+        if consensus_gain(prev, cur, restart, A) > cfg.fine_restart:
+            A = restart
     return A
 
 
@@ -206,23 +207,13 @@ def consensus_gain(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray, B: np.n
     network's `models.point_solver.consensus_gain` with every weight 1). A median alone scores a
     pose stuck near its start in rotation below the truth on some static pairs; the capped mean
     does not (docs/evaluation.md)."""
-    finest, X = prev.levels[0], prev.points
-    ref = sample(finest.stack[..., :1], project(X, finest.K)[0])[:, 0]
-    h, w = cur.levels[0].shape
-
-    def residuals(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        M = se3_inv(A)
-        Xt = X @ M[:3, :3].T + M[:3, 3]
-        front = Xt[:, 2] > 0.1
-        uv, _ = project(np.where(front[:, None], Xt, 1.0), finest.K)
-        seen = front & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-        return sample(cur.levels[0].stack[..., :1], np.where(seen[:, None], uv, 0.0))[:, 0] - ref, seen
-
-    (r, seen), (r_b, seen_b) = residuals(A), residuals(B)
-    ok = seen & seen_b
+    finest, grey2 = prev.levels[0], cur.levels[0].stack[..., 0]
+    ref, seen, ok = motion_samples(finest.stack[..., 0], prev.points, grey2, finest.K, A)
+    _, seen_b, ok_b = motion_samples(finest.stack[..., 0], prev.points, grey2, finest.K, B)
+    ok &= ok_b
     if not ok.any():
         return 0.0
-    r, r_b = r[ok], r_b[ok]
+    r, r_b = (seen - ref)[ok], (seen_b - ref)[ok]
     limit = max(cap * MAD_TO_SIGMA * min(np.median(np.abs(r)), np.median(np.abs(r_b))), 1e-6) ** 2
     return float(np.mean(np.minimum(r_b * r_b / limit, 1.0) - np.minimum(r * r / limit, 1.0)))
 
