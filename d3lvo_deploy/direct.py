@@ -29,6 +29,7 @@ from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_sa
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
+from .projection import rows_in_view
 
 MAD_TO_SIGMA = 1.4826  # MAD of a normal distribution times this is its standard deviation
 HUBER_K = 1.345  # Huber's threshold in sigmas: 95 % efficiency on Gaussian residuals
@@ -256,7 +257,9 @@ class DirectOdometry:
         t0 = time.perf_counter()
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
-        X = textured_points(clean_scan(points), self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
+        scan = rows_in_view(clean_scan(points), self.calib.P_velo_to_image2, grey.shape[1], grey.shape[0],
+                            self.cfg.points.min_depth)
+        X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X)

@@ -21,6 +21,7 @@ from .frames import FramePreprocessor
 from .geometry import change_frame, relative
 from .onnx_model import SessionConfig, StageModel, camera_inputs
 from .points import SolverFrame, point_config, solver_feeds
+from .projection import PROJECTION_MIN_DEPTH, rows_in_view
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 
@@ -129,6 +130,10 @@ class Odometry:
         pre = self._preprocessor(image)
         rgb = pre.rgb_input(image)
         scan = clean_scan(points) if self.model.depth_input != "none" else None
+        if scan is not None and len(scan):  # one cull for both passes below (`rows_in_view`)
+            h, w = image.shape[:2]
+            scan = rows_in_view(scan, self.calib.P_velo_to_image2, w, h,
+                                min(PROJECTION_MIN_DEPTH, self.points.min_depth if self.points else np.inf))
         inv = pre.invdepth_input(scan)
         solver = None
         if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver

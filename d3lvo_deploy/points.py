@@ -54,8 +54,10 @@ def in_depth_range(points: np.ndarray, T_cam_velo: np.ndarray, min_depth: float,
     """(N, >=3) LiDAR points -> (M, 3) float64 camera points with min_depth < z < max_depth: the
     same points and values as transforming every return, but only the half of a 360-degree scan
     ahead of the camera is converted to float64 and transformed (`rows_in_depth`)."""
-    near = rows_in_depth(points, T_cam_velo[2], min_depth, max_depth)[:, :3].astype(np.float64)
-    X = near @ T_cam_velo[:3, :3].T + T_cam_velo[:3, 3]
+    near = rows_in_depth(points, T_cam_velo[2], min_depth, max_depth)
+    h = np.empty((len(near), 4), np.float64)  # homogeneous: one GEMM, no (N, 3) broadcast add
+    h[:, :3], h[:, 3] = near[:, :3], 1.0
+    X = h @ np.asarray(T_cam_velo, np.float64)[:3].T
     return np.compress((X[:, 2] > min_depth) & (X[:, 2] < max_depth), X, axis=0)
 
 

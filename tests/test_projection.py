@@ -148,3 +148,34 @@ def test_velodyne_point_lands_where_p2_puts_it_by_hand():
     d = pre.depth(scan)
     rows, cols = np.nonzero(d)
     assert (cols.tolist(), rows.tolist()) == ([int(np.floor(u + 0.5)) - 13], [int(np.floor(v + 0.5)) - 23])
+
+
+def test_view_cull_keeps_every_return_the_projections_keep():
+    """`rows_in_view` (the runtime's one cull of a scan before the network's sparse depth and the
+    solver's points) drops only returns neither pass keeps: on a real scan and on points scattered
+    across the image's borders and the nearest depth, both passes give the same arrays with and
+    without it, while most of the 360-degree scan goes."""
+    from d3lvo_deploy.points import PointConfig, visible_points
+    from d3lvo_deploy.projection import PROJECTION_MIN_DEPTH, rows_in_view
+
+    seq = shared_path("kitti_raw_snippet", "sequences", "r0926")
+    calib = parse_calib(seq / "calib.txt")
+    P, K, T = calib.P_velo_to_image2, calib.K2, calib.T_cam2_velo
+    real = read_scan(seq / "velodyne" / "000000.bin")
+    # LiDAR points whose image_2 pixels straddle the borders, at depths around the nearest kept
+    rng = np.random.default_rng(3)
+    n = 20000
+    uv = np.c_[rng.uniform(-40, 1282, n), rng.uniform(-40, 415, n)]
+    z = np.r_[rng.uniform(0.05, 0.7, n // 2), rng.uniform(0.7, 80, n - n // 2)]
+    cam = np.c_[(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z]
+    velo = (cam - T[:3, 3]) @ T[:3, :3]  # T^-1 applied: camera -> LiDAR
+    edge = np.c_[velo, np.zeros(n)].astype(np.float32)
+    view = bottom_center_view(1242, 375)
+    cfg = PointConfig()
+    for scan in (real, edge):
+        kept = rows_in_view(scan, P, 1242, 375, min(PROJECTION_MIN_DEPTH, cfg.min_depth))
+        np.testing.assert_array_equal(sparse_depth(kept, view.project_matrix(P), view.width, view.height),
+                                      sparse_depth(scan, view.project_matrix(P), view.width, view.height))
+        np.testing.assert_array_equal(visible_points(kept, T, K, (375, 1242), cfg),
+                                      visible_points(scan, T, K, (375, 1242), cfg))
+    assert len(rows_in_view(real, P, 1242, 375, 0.1)) < 0.3 * len(real)
