@@ -330,3 +330,18 @@ for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
+# up to 9 Gauss-Newton steps per level instead of 15 (pt_iters; docs/evaluation.md), both modes, on
+# the twenty-four validation drives and then the held-out ones; it costs accuracy with traffic and
+# does not ship. Then 40 steps at the finest level, the classical mode on eight static ones
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_9" --set pt_iters=9,9,9
+for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/heldout_?? "$OUT"/data/static_2?? \
+         "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
+  s=$(basename "$d")
+  "$D3LVO" run "$d" --onnx "$OUT/steps_9" --backend onnxruntime --threads 1 --out "$OUT/eval/steps_9_$s.txt" --overwrite
+  "$D3LVO" run "$d" --onnx "$OUT/steps_9" --method direct --out "$OUT/eval/steps_9_direct_$s.txt" --overwrite
+done
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_40" --set pt_iters=15,15,40
+for s in val_static_2 val_static_3 val_static_4 val_static_608 val_static_609 val_static_610 val_static_611 \
+         val_static_614; do
+  "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/steps_40" --method direct --out "$OUT/eval/steps_40_direct_$s.txt" --overwrite
+done
