@@ -112,8 +112,8 @@ def rows_in_view(points: np.ndarray, P: np.ndarray, width: int, height: int, min
     """The rows of an (N, >=3) float32 scan that may land in a width x height image under the 3x4
     P (LiDAR to pixels) at a depth above min_depth: three float32 dot products per row and one
     np.compress on whole rows, so that each later pass (the network's sparse depth, the solver's
-    points, in float64) sees the quarter of a 360-degree scan the camera can see instead of all of
-    it. Conservative by `margin` pixels and a centimetre of depth: every row a later pass keeps
+    points, in float64) sees the part of a 360-degree scan the camera can see (a fifth to a quarter)
+    instead of the half ahead of it. Conservative by `margin` pixels and a centimetre of depth: every row a later pass keeps
     stays, in scan order."""
     Pf = np.asarray(P, np.float32)
     W = np.zeros((3, points.shape[1]), np.float32)
