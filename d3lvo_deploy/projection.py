@@ -112,9 +112,9 @@ def rows_in_view(points: np.ndarray, P: np.ndarray, width: int, height: int, min
     """The rows of an (N, >=3) float32 scan that may land in a width x height image under the 3x4
     P (LiDAR to pixels) at a depth above min_depth: three float32 dot products per row and one
     np.compress on whole rows, so that each later pass (the network's sparse depth, the solver's
-    points, in float64) sees the part of a 360-degree scan the camera can see (15-19 %)
-    instead of the half ahead of it. Conservative by `margin` pixels and a centimetre of depth: every row a later pass keeps
-    stays, in scan order."""
+    points, in float64) sees the part of a 360-degree scan the camera can see (15-19 %) instead
+    of the half ahead of it. Conservative by `margin` pixels and a centimetre of depth: every row a
+    later pass keeps stays, in scan order."""
     Pf = np.asarray(P, np.float32)
     W = np.zeros((3, points.shape[1]), np.float32)
     W[:, :3] = Pf[:, :3]
