@@ -9,7 +9,9 @@ from rest, and prints where each start ends and the pair's photometric cost ther
 that leaves the true motion for a pose of higher cost is the solver's objective failing, not its
 start; `--affine-brightness` refits frame t's grey as a ref + b at every step. Then, from the true
 motion without the finest level's restart (`fine_restart`), coarse to fine on all levels, on the
-two finest and on the finest alone: a pyramid level that holds a wrong minimum shows there.
+two finest and on the finest alone, each with its MSAC gain over the solve on all levels
+(`direct.consensus_gain`, by which the restart is kept above `fine_restart`): a pyramid level that
+holds a wrong minimum shows there.
 `--static-only` keeps only the points on pixels that frame I's motion mask (`motion_2/`, drives
 rendered with `--traffic`) marks static: whether what moves is to blame.
 """
@@ -23,7 +25,7 @@ import cv2
 import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, motion_cost, track
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, consensus_gain, motion_cost, track
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
@@ -55,12 +57,16 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
-    # where the pyramid loses it: from the true motion without the restart, on the finest levels only
+    # where the pyramid loses it: from the true motion without the restart, on the finest levels
+    # only, and the MSAC gain over the solve on all levels by which the restart is kept or not
+    full = None
     for n in range(cfg.levels, 0, -1):
         c = replace(cfg, levels=n, iterations=cfg.iterations[-n:], fine_restart=0.0)
         A = track(TrackedFrame(a.levels[:n], a.points), TrackedFrame(b.levels[:n], b.points), truth, c)
+        full = A if full is None else full
         print(f"from the true motion, the {n} finest level(s), no restart -> step {np.linalg.norm(A[:3, 3]):.3f} m, "
-              f"{np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m off, cost {motion_cost(a, b, A):.4f}")
+              f"{np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m off, cost {motion_cost(a, b, A):.4f}, "
+              f"gain over all levels {consensus_gain(a, b, A, full):+.4f}")
 
 
 if __name__ == "__main__":
