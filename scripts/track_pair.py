@@ -10,8 +10,9 @@ that leaves the true motion for a pose of higher cost is the solver's objective 
 start; `--affine-brightness` refits frame t's grey as a ref + b at every step. Then, from the true
 motion without the finest level's restart (`fine_restart`), coarse to fine on all levels, on the
 two finest and on the finest alone, each with its MSAC gain over the solve on all levels
-(`direct.consensus_gain`, by which the restart is kept above `fine_restart`): a pyramid level that
-holds a wrong minimum shows there.
+(`direct.consensus_gain`, by which the restart is kept above `fine_restart`) and its LiDAR depth
+error (frame I's points against frame I+1's own scan, which sees the forward step that weak
+texture may not): a pyramid level that holds a wrong minimum shows there.
 `--static-only` keeps only the points on pixels that frame I's motion mask (`motion_2/`, drives
 rendered with `--traffic`) marks static: whether what moves is to blame.
 """
@@ -29,8 +30,23 @@ from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, cons
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
+from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.points import project
+from d3lvo_deploy.projection import sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
+
+
+def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
+    """Median |d - z| / z of frame I's points moved by the image_2 motion A (frame I+1 in frame
+    I) against frame I+1's own LiDAR depth `depth` where it has a return at their pixel: a check of
+    the motion that does not use the images, and that sees the forward step."""
+    M = np.linalg.inv(A)
+    X = points @ M[:3, :3].T + M[:3, 3]
+    X = X[X[:, 2] > 0.5]
+    u, v = (np.rint(K[k, k] * X[:, k] / X[:, 2] + K[k, 2]).astype(int) for k in (0, 1))
+    inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+    d, z = depth[v[inside], u[inside]], X[inside, 2]
+    return float(np.median(np.abs(d[d > 0] - z[d > 0]) / z[d > 0]))
 
 
 def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
@@ -57,6 +73,11 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
+    h, w = seq.image(i + 1).shape[:2]
+    depth = sparse_depth(clean_scan(seq.scan(i + 1)), seq.calib.P_velo_to_image2, w, h)
+    K = seq.calib.K2
+    print(f"LiDAR depth error (median |d - z| / z against frame {i + 1}'s scan) at the true motion "
+          f"{lidar_depth_error(a.points, truth, depth, K):.4f}")
     # where the pyramid loses it: from the true motion without the restart, on the finest levels
     # only, and the MSAC gain over the solve on all levels by which the restart is kept or not
     full = None
@@ -66,7 +87,8 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         full = A if full is None else full
         print(f"from the true motion, the {n} finest level(s), no restart -> step {np.linalg.norm(A[:3, 3]):.3f} m, "
               f"{np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m off, cost {motion_cost(a, b, A):.4f}, "
-              f"gain over all levels {consensus_gain(a, b, A, full):+.4f}")
+              f"gain over all levels {consensus_gain(a, b, A, full):+.4f}, LiDAR depth error "
+              f"{lidar_depth_error(a.points, A, depth, K):.4f}")
 
 
 if __name__ == "__main__":
