@@ -133,7 +133,7 @@ class Odometry:
         if scan is not None and len(scan):  # one cull for both passes below (`rows_in_view`)
             h, w = image.shape[:2]
             scan = rows_in_view(scan, self.calib.P_velo_to_image2, w, h,
-                                min(PROJECTION_MIN_DEPTH, self.points.min_depth if self.points else np.inf))
+                                min(PROJECTION_MIN_DEPTH, self.points.min_depth if self.points is not None else np.inf))
         inv = pre.invdepth_input(scan)
         solver = None
         if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver

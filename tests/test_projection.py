@@ -1,6 +1,7 @@
 """LiDAR -> sparse depth: hand cases, a loop reference, crop/resize registration, real scans."""
 
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -150,32 +151,52 @@ def test_velodyne_point_lands_where_p2_puts_it_by_hand():
     assert (cols.tolist(), rows.tolist()) == ([int(np.floor(u + 0.5)) - 13], [int(np.floor(v + 0.5)) - 23])
 
 
-def test_view_cull_keeps_every_return_the_projections_keep():
-    """`rows_in_view` (the runtime's one cull of a scan before the network's sparse depth and the
-    solver's points) drops only returns neither pass keeps: on a real scan and on points scattered
-    across the image's borders and the nearest depth, both passes give the same arrays with and
-    without it, while most of the 360-degree scan goes."""
+def _cull_keeps_what_the_passes_keep(scan, calib, width, height):
+    """`rows_in_view` at the runtime's depth (the network's nearest, 0.1 m) and at the classical
+    tracker's (the points' 0.5 m) drops only rows that neither the network's sparse depth (the
+    paper's 1216x352 view and the bundled model's 608x176) nor the solver's points keep."""
     from d3lvo_deploy.points import PointConfig, visible_points
-    from d3lvo_deploy.projection import PROJECTION_MIN_DEPTH, rows_in_view
+    from d3lvo_deploy.projection import PROJECTION_MIN_DEPTH, network_view, rows_in_view
 
-    seq = shared_path("kitti_raw_snippet", "sequences", "r0926")
-    calib = parse_calib(seq / "calib.txt")
-    P, K, T = calib.P_velo_to_image2, calib.K2, calib.T_cam2_velo
-    real = read_scan(seq / "velodyne" / "000000.bin")
-    # LiDAR points whose image_2 pixels straddle the borders, at depths around the nearest kept
-    rng = np.random.default_rng(3)
-    n = 20000
-    uv = np.c_[rng.uniform(-40, 1282, n), rng.uniform(-40, 415, n)]
-    z = np.r_[rng.uniform(0.05, 0.7, n // 2), rng.uniform(0.7, 80, n - n // 2)]
-    cam = np.c_[(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z]
-    velo = (cam - T[:3, 3]) @ T[:3, :3]  # T^-1 applied: camera -> LiDAR
-    edge = np.c_[velo, np.zeros(n)].astype(np.float32)
-    view = bottom_center_view(1242, 375)
-    cfg = PointConfig()
-    for scan in (real, edge):
-        kept = rows_in_view(scan, P, 1242, 375, min(PROJECTION_MIN_DEPTH, cfg.min_depth))
+    P, K, T, cfg = calib.P_velo_to_image2, calib.K2, calib.T_cam2_velo, PointConfig()
+    kept = rows_in_view(scan, P, width, height, min(PROJECTION_MIN_DEPTH, cfg.min_depth))
+    for net in ((1216, 352), (608, 176)):
+        view = network_view(width, height, *net)
         np.testing.assert_array_equal(sparse_depth(kept, view.project_matrix(P), view.width, view.height),
                                       sparse_depth(scan, view.project_matrix(P), view.width, view.height))
-        np.testing.assert_array_equal(visible_points(kept, T, K, (375, 1242), cfg),
-                                      visible_points(scan, T, K, (375, 1242), cfg))
-    assert len(rows_in_view(real, P, 1242, 375, 0.1)) < 0.3 * len(real)
+    np.testing.assert_array_equal(visible_points(kept, T, K, (height, width), cfg),
+                                  visible_points(scan, T, K, (height, width), cfg))
+    solver_only = rows_in_view(scan, P, width, height, cfg.min_depth)  # `--method direct`
+    np.testing.assert_array_equal(visible_points(solver_only, T, K, (height, width), cfg),
+                                  visible_points(scan, T, K, (height, width), cfg))
+    return kept
+
+
+def test_view_cull_keeps_returns_at_the_borders_and_the_nearest_depth():
+    """Points whose image_2 pixels straddle the image's borders (40 pixels either side), at depths
+    around both nearest depths (0.1 and 0.5 m) and far: the passes give the same arrays with and
+    without the cull, for a 4-column and a 3-column scan; an empty scan stays empty."""
+    from d3lvo_deploy.projection import rows_in_view
+
+    calib = parse_calib(Path(__file__).parent / "data" / "tiny_seq" / "calib.txt")
+    K, T = calib.K2, calib.T_cam2_velo
+    rng = np.random.default_rng(3)
+    n, w, h = 40000, 1242, 375
+    uv = np.c_[rng.uniform(-40, w + 40, n), rng.uniform(-40, h + 40, n)]
+    z = np.r_[rng.uniform(0.05, 0.7, n // 2), rng.uniform(0.7, 80, n - n // 2)]
+    cam = np.c_[(uv[:, 0] - K[0, 2]) * z / K[0, 0], (uv[:, 1] - K[1, 2]) * z / K[1, 1], z]
+    velo = (cam - T[:3, 3]) @ T[:3, :3]  # T^-1: camera -> LiDAR
+    for scan in (np.c_[velo, np.zeros(n)].astype(np.float32), velo.astype(np.float32)):
+        kept = _cull_keeps_what_the_passes_keep(scan, calib, w, h)
+        assert 0 < len(kept) < len(scan)
+    empty = np.zeros((0, 4), np.float32)
+    assert rows_in_view(empty, calib.P_velo_to_image2, w, h, 0.1).shape == (0, 4)
+
+
+def test_view_cull_on_a_real_scan():
+    """On a real 360-degree scan the passes give the same arrays with and without the cull, and
+    the cull keeps under a third of the scan."""
+    seq = shared_path("kitti_raw_snippet", "sequences", "r0926")
+    calib = parse_calib(seq / "calib.txt")
+    real = read_scan(seq / "velodyne" / "000000.bin")
+    assert len(_cull_keeps_what_the_passes_keep(real, calib, 1242, 375)) < 0.3 * len(real)
