@@ -21,14 +21,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from track_pair import lidar_depth_error  # noqa: E402
+from track_pair import lidar_depth, lidar_depth_error  # noqa: E402
 
 from d3lvo_deploy import direct  # noqa: E402
 from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
 from d3lvo_deploy.manifest import load_manifest  # noqa: E402
-from d3lvo_deploy.odometry import clean_scan  # noqa: E402
 from d3lvo_deploy.poses import write_poses  # noqa: E402
-from d3lvo_deploy.projection import sparse_depth  # noqa: E402
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 
 
@@ -36,19 +34,20 @@ def main(drive: str, out: str, ratio: float) -> None:
     seq = KittiSequence.open(drive)
     cfg = direct.DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"])
     shipped, K = direct.track, seq.calib.K2
-    frame_t = {}  # frame t's sparse LiDAR depth at the camera's resolution, set per frame below
+    frame_t = {}  # frame t's LiDAR depth at the camera's resolution, set per frame below
 
     def track(prev, cur, start, c):
         coarse_to_fine = shipped(prev, cur, start, replace(c, fine_restart=0.0))
-        with_restart = shipped(prev, cur, start, c)  # the shipped rule's choice
-        if c.fine_restart <= 0 or not np.array_equal(with_restart, coarse_to_fine) or "depth" not in frame_t:
-            return with_restart
+        if c.fine_restart <= 0 or c.levels < 2:
+            return coarse_to_fine
+        # the shipped restart: the finest level alone from the start
         finest = replace(c, levels=1, iterations=c.iterations[-1:], fine_restart=0.0)
         restart = shipped(direct.TrackedFrame(prev.levels[:1], prev.points), direct.TrackedFrame(cur.levels[:1], []),
                           start, finest)
         depth = frame_t["depth"]
-        if lidar_depth_error(prev.points, restart, depth, K) < ratio * lidar_depth_error(prev.points, coarse_to_fine,
-                                                                                          depth, K):
+        if (direct.consensus_gain(prev, cur, restart, coarse_to_fine) > c.fine_restart  # the shipped rule
+                or lidar_depth_error(prev.points, restart, depth, K)
+                < ratio * lidar_depth_error(prev.points, coarse_to_fine, depth, K)):
             return restart
         return coarse_to_fine
 
@@ -57,7 +56,7 @@ def main(drive: str, out: str, ratio: float) -> None:
     poses = []
     for i in range(len(seq)):
         image, scan = seq.image(i), seq.scan(i)
-        frame_t["depth"] = sparse_depth(clean_scan(scan), seq.calib.P_velo_to_image2, image.shape[1], image.shape[0])
+        frame_t["depth"] = lidar_depth(image, scan, seq.calib)
         poses.append(odo.step(image, scan))
     write_poses(out, np.array(poses))
 

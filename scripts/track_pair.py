@@ -44,12 +44,17 @@ def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: n
     M = np.linalg.inv(A)
     X = points @ M[:3, :3].T + M[:3, 3]
     X = X[X[:, 2] > 0.5]
-    u, v = (np.rint(K[k, k] * X[:, k] / X[:, 2] + K[k, 2]).astype(int) for k in (0, 1))
+    u, v = np.rint(project(X, K)[0]).astype(int).T
     inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
     d, z = depth[v[inside], u[inside]], X[inside, 2]
     if not (d > 0).any():
         return float("inf")  # no return to check against: no evidence for this motion
     return float(np.median(np.abs(d[d > 0] - z[d > 0]) / z[d > 0]))
+
+
+def lidar_depth(image: np.ndarray, scan: np.ndarray, calib) -> np.ndarray:
+    """(H, W) metres of a frame's own LiDAR returns at its camera's resolution, 0 where none."""
+    return sparse_depth(clean_scan(scan), calib.P_velo_to_image2, image.shape[1], image.shape[0])
 
 
 def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
@@ -76,9 +81,7 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
-    h, w = seq.image(i + 1).shape[:2]
-    depth = sparse_depth(clean_scan(seq.scan(i + 1)), seq.calib.P_velo_to_image2, w, h)
-    K = seq.calib.K2
+    depth, K = lidar_depth(seq.image(i + 1), seq.scan(i + 1), seq.calib), seq.calib.K2
     print(f"LiDAR depth error (median |d - z| / z against frame {i + 1}'s scan) at the true motion "
           f"{lidar_depth_error(a.points, truth, depth, K):.4f}")
     # where the pyramid loses it: from the true motion without the restart, on the finest levels
