@@ -9,7 +9,8 @@ from a constant-velocity start (the first pair from several, `cold_start`). The 
 from the residuals every third step (1.345 x the MAD scale), so it follows the scene instead of a
 fixed threshold that suits one exposure and one amount of noise. With `fine_restart` the finest
 level is also solved alone from the start, and that motion is kept where it explains the points
-better (`consensus_gain`): a quarter-size level can hold a wrong minimum the finest cannot leave.
+better (`consensus_gain`), or with `restart_depth` where it fits frame t's own LiDAR scan better
+(`lidar_depth_error`): a quarter-size level can hold a wrong minimum the finest cannot leave.
 
 `DirectOdometry.register_frame(image, points)` reads as the algorithm; it has the streaming
 interface of `Odometry` (`step`, `prime`, `reset`, `pose`), so `d3lvo run --method direct`
@@ -29,7 +30,7 @@ from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_sa
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
-from .projection import rows_in_view
+from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 MAD_TO_SIGMA = 1.4826  # MAD of a normal distribution times this is its standard deviation
 HUBER_K = 1.345  # Huber's threshold in sigmas: 95 % efficiency on Gaussian residuals
@@ -59,6 +60,11 @@ class DirectConfig:
     # and a constant-velocity start is near the truth at 10 Hz (the network's `pt_fine_restart`,
     # docs/evaluation.md)
     fine_restart: float = 0.0
+    # above 0 (with `fine_restart`): also keep the restart where its `lidar_depth_error` against
+    # frame t's own scan is below this times coarse to fine's: where few points constrain the
+    # forward step, the photometric costs can prefer a motion half a metre short, and the scan
+    # sees the step (the network's `pt_restart_depth`, docs/evaluation.md)
+    restart_depth: float = 0.0
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
 
@@ -73,7 +79,8 @@ class DirectConfig:
                    damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
                    refine=model_config.get("pt_refine", 0), points=point_config(model_config),
                    affine_brightness=bool(model_config.get("pt_affine", False)),
-                   fine_restart=float(model_config.get("pt_fine_restart", 0.0)))
+                   fine_restart=float(model_config.get("pt_fine_restart", 0.0)),
+                   restart_depth=float(model_config.get("pt_restart_depth", 0.0)))
 
 
 @dataclass
@@ -174,10 +181,14 @@ class TrackedFrame:
     """What the tracker keeps of a frame: its image pyramid and its textured LiDAR returns."""
     levels: list[Level]
     points: np.ndarray  # (N, 3) textured LiDAR returns in image_2 camera coordinates
+    # (H, W) metres of the frame's own LiDAR returns at the camera's resolution, 0 where none
+    # (`DirectConfig.restart_depth`); None where not needed
+    depth: np.ndarray | None = None
 
     @classmethod
-    def of(cls, grey: np.ndarray, points: np.ndarray, K: np.ndarray, levels: int) -> "TrackedFrame":
-        return cls(pyramid(grey, K, levels), points)
+    def of(cls, grey: np.ndarray, points: np.ndarray, K: np.ndarray, levels: int,
+           depth: np.ndarray | None = None) -> "TrackedFrame":
+        return cls(pyramid(grey, K, levels), points, depth)
 
 
 def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectConfig) -> np.ndarray:
@@ -196,9 +207,30 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
         if cfg.refine:
             M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
         restart = se3_inv(M)
-        if consensus_gain(prev, cur, restart, A) > cfg.fine_restart:
+        if consensus_gain(prev, cur, restart, A) > cfg.fine_restart or (
+                cfg.restart_depth > 0 and cur.depth is not None
+                and lidar_depth_error(X, restart, cur.depth, prev.levels[0].K)
+                < cfg.restart_depth * lidar_depth_error(X, A, cur.depth, prev.levels[0].K)):
             A = restart
     return A
+
+
+def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
+    """The median |d - z| / z of frame t-1's points (N, 3) moved by the image_2 motion A (frame t in
+    t-1) against frame t's own LiDAR depth `depth` (H, W metres, 0 where none) at their nearest
+    pixel, where it has a return and z is above 0.5 m; inf where none does (no evidence). A check
+    of the motion that does not read the images and that sees the forward step (the network's
+    `models.point_solver.lidar_depth_error` with every point trusted)."""
+    M = se3_inv(A)
+    X = points @ M[:3, :3].T + M[:3, 3]
+    X = X[X[:, 2] > 0.5]
+    u, v = np.rint(project(X, K)[0]).T
+    inside = (u >= 0) & (u <= depth.shape[1] - 1) & (v >= 0) & (v <= depth.shape[0] - 1)
+    d, z = depth[v[inside].astype(int), u[inside].astype(int)], X[inside, 2]
+    seen = d > 0
+    if not seen.any():
+        return float("inf")
+    return float(np.median(np.abs(d[seen] - z[seen]) / z[seen]))
 
 
 def consensus_gain(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray, B: np.ndarray, cap: float = 2.0) -> float:
@@ -257,12 +289,13 @@ class DirectOdometry:
         t0 = time.perf_counter()
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
-        scan = rows_in_view(clean_scan(points), self.calib.P_velo_to_image2, grey.shape[1], grey.shape[0],
-                            self.cfg.points.min_depth)
+        P, (h, w) = self.calib.P_velo_to_image2, grey.shape
+        scan = rows_in_view(clean_scan(points), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
+        depth = sparse_depth(scan, P, w, h) if self.cfg.restart_depth > 0 else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
-        return TrackedFrame(levels, X)
+        return TrackedFrame(levels, X, depth)
 
     def register_frame(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Track frame t against frame t-1's LiDAR points; returns the image_2 motion A (t in t-1)."""

@@ -84,6 +84,8 @@ class Odometry:
         # `prepare`, made once per frame
         takes_pyramids = "stack2_p0" in self.model.input_names("flowpose")
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
+        # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
+        self.takes_depth = "scan_depth2" in self.model.input_names("flowpose")
         self.reset()
 
     @property
@@ -138,7 +140,7 @@ class Odometry:
         solver = None
         if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
             solver = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points,
-                                    self.pyramid_levels)
+                                    self.pyramid_levels, self.calib.P_velo_to_image2 if self.takes_depth else None)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
 
     def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
@@ -243,4 +245,4 @@ def cold_start_motion(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, model_
 
     cfg = replace(DirectConfig.of_model(model_config), cold_start=cold_start)
     return first_motion(TrackedFrame.of(prev.grey, prev.points, K, cfg.levels),
-                        TrackedFrame.of(cur.grey, cur.points, K, cfg.levels), cfg)
+                        TrackedFrame.of(cur.grey, cur.points, K, cfg.levels, cur.depth), cfg)

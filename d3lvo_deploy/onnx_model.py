@@ -22,7 +22,8 @@ from .manifest import for_engine, load_manifest
 
 # the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
 # point solver's image pyramids `image1_pK`, `stack2_pK` too)
-CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics")
+CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics",
+                            "scan_depth2")
 
 
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .projection import rows_in_depth
+from .projection import rows_in_depth, sparse_depth
 
 
 @dataclass
@@ -152,14 +152,19 @@ class SolverFrame:
     grey: np.ndarray  # (H, W) float32 in [0, 1], the camera's full resolution
     points: np.ndarray  # (M, 3) image_2 camera coordinates
     pyramid: list[np.ndarray] | None = None  # `solver_pyramid(grey, levels)`
+    # (H, W) metres of the frame's own LiDAR returns, 0 where none: for a graph that checks the
+    # finest level's restart against frame t's scan (`pt_restart_depth`)
+    depth: np.ndarray | None = None
 
     @classmethod
     def of(cls, image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
-           cfg: PointConfig, levels: int = 0) -> "SolverFrame":
+           cfg: PointConfig, levels: int = 0, depth_P: np.ndarray | None = None) -> "SolverFrame":
+        """depth_P: the 3x4 LiDAR-to-pixel matrix where the graph takes the frame's LiDAR depth."""
         grey = grey_image(image)
         grads = gradients(grey)
         points = textured_points(scan, T_cam_velo, K, grey, cfg, grads)
-        return cls(grey, points, solver_pyramid(grey, levels, grads) if levels else None)
+        depth = None if depth_P is None else sparse_depth(scan, depth_P, grey.shape[1], grey.shape[0])
+        return cls(grey, points, solver_pyramid(grey, levels, grads) if levels else None, depth)
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:
@@ -172,4 +177,6 @@ def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: i
     if prev.pyramid is not None and cur.pyramid is not None:
         for k, (a, b) in enumerate(zip(prev.pyramid, cur.pyramid)):
             feeds[f"image1_p{k}"], feeds[f"stack2_p{k}"] = a[None, :1], b[None]
+    if cur.depth is not None:
+        feeds["scan_depth2"] = cur.depth[None, None]
     return feeds

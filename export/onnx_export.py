@@ -109,8 +109,12 @@ def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str
     mask = (torch.arange(n) < n // 2).float()[None]
     grey1, stack2 = image_pyramids(image, torch.roll(image, 1, -1), len(model.cfg.pt_iters))
     names1, names2 = pyramid_input_names(len(model.cfg.pt_iters))
-    return {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
-            "image_intrinsics": K}
+    out = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
+           "image_intrinsics": K}
+    if model.cfg.pt_restart_depth > 0:  # frame t's LiDAR depth: a return on every fourth pixel
+        depth = 5.0 + 30.0 * torch.rand(1, 1, H, W, generator=g)
+        out["scan_depth2"] = depth * (torch.rand(1, 1, H, W, generator=g) < 0.25).float()
+    return out
 
 
 def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> None:
@@ -120,6 +124,8 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
         if n.startswith(("image1_p", "stack2_p")):
             k = n.rsplit("_p", 1)[1]
             dynamic.setdefault(n, {}).update({2: f"image_height_p{k}", 3: f"image_width_p{k}"})
+        if n == "scan_depth2":  # frame t's LiDAR depth, at the finest level's size
+            dynamic.setdefault(n, {}).update({2: "image_height_p0", 3: "image_width_p0"})
     dynamic = dynamic or None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer/deprecation chatter; correctness is checked below

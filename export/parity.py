@@ -125,6 +125,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     geometric = ort_model.geometric
     points = point_config(ort_model.config) if ort_model.point_solver else None
     levels = len(ort_model.config["pt_iters"]) if "stack2_p0" in ort_model.input_names("flowpose") else 0
+    depth_P = seq.calib.P_velo_to_image2 if "scan_depth2" in ort_model.input_names("flowpose") else None
     solver_prev = None
     for i in range(n):
         rgb = pre.rgb_input(seq.image(i))
@@ -150,7 +151,8 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
         enc_o = ort_model.encode(rgb, dense_o, inv)
         # the point solver's inputs are made by numpy on both sides: the same for torch and the engine
         solver_cur = None if points is None else SolverFrame.of(seq.image(i), clean_scan(seq.scan(i)),
-                                                                seq.calib.T_cam2_velo, seq.calib.K2, points, levels)
+                                                                seq.calib.T_cam2_velo, seq.calib.K2, points, levels,
+                                                                depth_P)
         feeds = None if solver_prev is None else solver_feeds(solver_prev, solver_cur, seq.calib.K2, points.capacity)
         if prev_t is not None:
             cam_t = camera_inputs(pre.K, motion_t) if geometric else None

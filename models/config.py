@@ -12,7 +12,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
-               "pt_refine", "pt_affine", "pt_fine_restart", "pt_select", "pt_select_rotation", "pt_select_unexplained")
+               "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -91,6 +91,11 @@ class D3LVOConfig:
     # where it explains the points better by more than this (`point_solver.consensus_gain`): a
     # coarse level can hold a wrong minimum (docs/evaluation.md)
     pt_fine_restart: float = 0.0
+    # above 0 (with pt_fine_restart): the flow+pose graph also takes frame t's LiDAR depth at the
+    # camera's resolution (`scan_depth2`), and the restart is also kept where its depth error against
+    # that scan is below this times the coarse-to-fine pose's (`point_solver.lidar_depth_error`):
+    # the scan sees a forward step the photometric costs can miss (docs/evaluation.md)
+    pt_restart_depth: float = 0.0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
     # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
@@ -179,6 +184,10 @@ class D3LVOConfig:
             raise ValueError(f"pt_affine must be true or false, not {self.pt_affine!r}")
         if not (isinstance(self.pt_fine_restart, (int, float)) and 0 <= self.pt_fine_restart < 1):
             raise ValueError(f"pt_fine_restart must be in [0, 1) (0: off), not {self.pt_fine_restart!r}")
+        if not (isinstance(self.pt_restart_depth, (int, float)) and 0 <= self.pt_restart_depth <= 1):
+            raise ValueError(f"pt_restart_depth must be in [0, 1] (0: off), not {self.pt_restart_depth!r}")
+        if self.pt_restart_depth > 0 and self.pt_fine_restart <= 0:
+            raise ValueError("pt_restart_depth decides on the finest level's restart: it needs pt_fine_restart above 0")
         if not (isinstance(self.pt_refine, int) and self.pt_refine >= 0):
             raise ValueError(f"pt_refine must be a whole number of steps, 0 or more, not {self.pt_refine!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):

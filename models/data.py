@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import Dataset
 
 from d3lvo_deploy.errors import D3LVOInputError
+from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
@@ -163,15 +164,20 @@ class FrameLoader:
             return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
         return self.view.apply_depth((m > 0).astype(np.float32))
 
-    def solver_frame(self, i: int) -> SolverFrame:
-        """Frame i as the point solver reads it (camera resolution, textured LiDAR points)."""
+    def solver_frame(self, i: int, depth: bool = False) -> SolverFrame:
+        """Frame i as the point solver reads it (camera resolution, textured LiDAR points; with
+        `depth`, its own LiDAR depth, for a solver that checks its restart against the scan)."""
         def make() -> dict[str, np.ndarray]:
             f = SolverFrame.of(self.seq.image(i), self.seq.scan(i), self.seq.calib.T_cam2_velo, self.seq.calib.K2,
                                self.points)
             return {"grey": f.grey, "points": f.points}
 
         a = self._cached("solver", i, make)
-        return SolverFrame(a["grey"], a["points"])
+        if not depth:
+            return SolverFrame(a["grey"], a["points"])
+        grey, calib = a["grey"], self.seq.calib  # not cached: 1 ms
+        return SolverFrame(a["grey"], a["points"], depth=sparse_depth(clean_scan(self.seq.scan(i)),
+                                                                     calib.P_velo_to_image2, grey.shape[1], grey.shape[0]))
 
     def gt_depth(self, i: int) -> np.ndarray:
         f = self.seq.root / "depth_2" / f"{self.seq.frame_names[i]}.png"
@@ -217,7 +223,8 @@ class PairDataset(Dataset):
         """The point solver's inputs for sample idx, unaugmented (evaluation; batch of one)."""
         k, i = self.items[idx]
         L = self.loaders[k]
-        feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i), L.seq.calib.K2, self.cfg.pt_capacity)
+        feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i, self.cfg.pt_restart_depth > 0), L.seq.calib.K2,
+                             self.cfg.pt_capacity)
         return {n: torch.from_numpy(np.ascontiguousarray(a)) for n, a in feeds.items()}
 
     def identity_errors(self) -> tuple[float, float]:

@@ -3,7 +3,8 @@
 Frame t-1's textured LiDAR returns (`d3lvo_deploy.points.textured_points`, a fixed-length list with
 a mask) are moved by the running motion, projected into frame t's grey image and its pyrDown
 levels, and the photometric residual is minimised coarse to fine (with `fine_restart`, the finest
-level also alone from the start, the better-explaining pose kept). Each level re-estimates a Huber
+level also alone from the start, the better-explaining pose kept; with `restart_depth`, also where
+it fits frame t's own LiDAR scan better). Each level re-estimates a Huber
 threshold from the residuals' median (1.345 x 1.4826 x MAD, every `scale_every` steps), takes up to `iterations[l]`
 damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps; the
 steps run in blocks of `scale_every`, and at a block boundary after the stop PyTorch breaks and
@@ -57,6 +58,11 @@ class SolverSettings:
     # wrong minimum that the finest level then cannot leave, and a constant-velocity start is
     # near the truth at 10 Hz
     fine_restart: float = 0.0
+    # above 0 (with frame t's own LiDAR depth, `scan_depth2`): also keep the restart where its
+    # `lidar_depth_error` is below this times the coarse-to-fine pose's. Where few points constrain
+    # the forward step, the photometric costs can prefer a pose half a metre short; the scan of
+    # frame t sees the step (docs/evaluation.md)
+    restart_depth: float = 0.0
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -287,11 +293,12 @@ def _refined(R, t, points, ref, stack, K, weight, median_mask, mask, s: SolverSe
 
 
 def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask, init, k: int, s: SolverSettings,
-                         default_median: bool, grey1: torch.Tensor) -> torch.Tensor:
+                         default_median: bool, grey1: torch.Tensor, depth2: torch.Tensor | None) -> torch.Tensor:
     """The finest level from the coarser levels' pose R, t and, in the same batch, alone from the
     start `init` (`DirectConfig.fine_restart`); (B,4,4): the restart's pose where it explains the
-    points the solve trusts better by more than `s.fine_restart` (`consensus_gain`), else the
-    coarse-to-fine one. One batch rather than a second solve: a step's time is per-op overhead, so
+    points the solve trusts better by more than `s.fine_restart` (`consensus_gain`), or, with
+    `s.restart_depth` and frame t's LiDAR depth `scan_depth2`, where it fits that depth better
+    (`lidar_depth_error`), else the coarse-to-fine one. One batch rather than a second solve: a step's time is per-op overhead, so
     twice the rows cost about what one does. Rows per pair: its k coarse-to-fine solves, then their
     k restarts, on one copy of its images."""
     def two(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -306,7 +313,35 @@ def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask,
     A = _matrix(R2, t2).reshape(-1, 2, k, 4, 4)
     coarse_to_fine, restart = A[:, 0].flatten(0, 1), A[:, 1].flatten(0, 1)
     better = consensus_gain(restart, coarse_to_fine, grey1, stack, points, weight, K) > s.fine_restart
+    if s.restart_depth > 0 and depth2 is not None:
+        trusted = (weight >= 0.5).to(points.dtype)
+        errors = lidar_depth_error(A.flatten(0, 2), two(points, points), two(trusted, trusted), depth2, two(K, K))
+        errors = errors.reshape(-1, 2, k)
+        better = better | (errors[:, 1] < s.restart_depth * errors[:, 0]).flatten()
     return torch.where(better[:, None, None], restart, coarse_to_fine)
+
+
+@full_precision
+def lidar_depth_error(A: torch.Tensor, points: torch.Tensor, trusted: torch.Tensor, depth2: torch.Tensor,
+                      K: torch.Tensor) -> torch.Tensor:
+    """(B,): the median |d - z| / z of frame t-1's trusted points (B,N) moved by A (B,4,4, frame
+    t in frame t-1) against frame t's own LiDAR depth d (G,1,H,W metres, 0 where no return; B = k
+    G, rows i k .. i k + k - 1 on image i) at their nearest pixel, where it has a return and z
+    above 0.5 m; 1e9 where no point lands on one (no evidence). A check of the motion that does
+    not read the images, and that sees the forward step; the numpy tracker's
+    `d3lvo_deploy.direct.lidar_depth_error` with every point trusted."""
+    M = gn.invert(A)
+    X = points @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1)
+    uv = project(X, K)[0]
+    size = image_size(depth2, points.dtype)  # (h, w)
+    u, v = torch.round(uv[..., 0]), torch.round(uv[..., 1])
+    inside = (u >= 0) & (u <= size[1] - 1) & (v >= 0) & (v <= size[0] - 1)
+    index = (v.clamp(min=0) * size[1] + u.clamp(min=0)).clamp(max=size[0] * size[1] - 1).long()
+    g = depth2.shape[0]
+    d = torch.gather(depth2.flatten(1), 1, index.reshape(g, -1)).reshape(index.shape)
+    z = X[..., 2]
+    ok = trusted * (inside & (d > 0) & (z > 0.5)).to(points.dtype)
+    return masked_median((d - z).abs() / z.clamp(min=0.5), ok)[:, 0]
 
 
 @full_precision
@@ -363,7 +398,7 @@ def image_pyramids(image1: torch.Tensor, image2: torch.Tensor, levels: int) -> t
 @full_precision
 def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor,
           init: torch.Tensor, s: SolverSettings, median_mask: torch.Tensor | None = None,
-          mask: torch.Tensor | None = None):
+          mask: torch.Tensor | None = None, depth2: torch.Tensor | None = None):
     """grey1, stack2 (`image_pyramids`): frame t-1's grey (G,1,h,w) and frame t's grey and
     derivatives (G,3,h,w) at each pyrDown level, finest first, level 0 at the camera's resolution;
     G pairs, each solved k = B / G times from one copy of its images (batch rows i k .. i k + k - 1
@@ -372,6 +407,7 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
     mask (B,N), the point list's (default weight > 0): what `s.refine` restores explained points to.
+    depth2 (G,1,H,W): frame t's LiDAR depth at the camera's resolution, for `s.restart_depth`.
     Returns the relative pose A after each level, coarse to fine (the finest after the refinement):
     list of (B,4,4)."""
     default_median = median_mask is None
@@ -390,7 +426,7 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
         ref = ref.unsqueeze(1).expand(-1, k, -1).flatten(0, 1) if k > 1 else ref
         if lvl == 0 and s.fine_restart > 0 and len(s.iterations) > 1:
             out.append(_finest_with_restart(R, t, points, ref, stack2[0], Kl, weight, median_mask, mask, init, k,
-                                            s, default_median, grey1[0]))
+                                            s, default_median, grey1[0], depth2))
             continue
         R, t = align_level(R, t, points, ref, stack2[lvl], Kl, weight, median_mask, s.iterations[i], s)
         if lvl == 0 and s.refine > 0:

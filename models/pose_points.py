@@ -79,7 +79,8 @@ class PointPose(nn.Module):
         looks = cfg.flow_hidden[1] + cfg.feature_widths[self.level] if cfg.pt_conf_inputs == "all" else 0
         self.moving = MovingLogits(2 + 1 + 3 + looks)
         self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every,
-                                        cfg.pt_refine, cfg.pt_affine, cfg.pt_fine_restart)
+                                        cfg.pt_refine, cfg.pt_affine, cfg.pt_fine_restart,
+                                        cfg.pt_restart_depth)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                       invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,
@@ -147,7 +148,8 @@ class PointPose(nn.Module):
         """Tensors at the finest flow level; K (B,4) of the network view; init (B,4,4) the start.
         `solver`: both frames' image pyramids (`pyramid_input_names`; the exported graph's inputs)
         or image1, image2 (B,1,H,W) grey at the camera's resolution (training), points1 (B,N,3),
-        point_mask1 (B,N), image_intrinsics (B,4); without it only the logits."""
+        point_mask1 (B,N), image_intrinsics (B,4), with `pt_restart_depth` scan_depth2 (B,1,H,W) frame
+        t's LiDAR depth at the camera's resolution; without it only the logits."""
         logits = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init)
         confidence = torch.sigmoid(-logits)
         out = {"moving_logits": logits, "confidence": [confidence]}
@@ -164,7 +166,7 @@ class PointPose(nn.Module):
             # batch rows 2i and 2i + 1 are pair i's two solves, which share its images (no copy)
             two = lambda x: interleave(x, x)  # noqa: E731
             both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
-                         self.settings, mask=two(mask))
+                         self.settings, mask=two(mask), depth2=solver.get("scan_depth2"))
             levels, classical = [L[0::2] for L in both], both[-1][1::2]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)
             # the next pair starts from the weighted pose, whichever is kept: started from a
@@ -183,7 +185,8 @@ class PointPose(nn.Module):
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:
-            levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask)
+            levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask,
+                           depth2=solver.get("scan_depth2"))
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out

@@ -26,7 +26,8 @@ import cv2
 import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, consensus_gain, motion_cost, track
+from d3lvo_deploy.direct import (DirectConfig, DirectOdometry, TrackedFrame, consensus_gain, lidar_depth_error,
+                                 motion_cost, track)
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.odometry import clean_scan
@@ -34,22 +35,6 @@ from d3lvo_deploy.points import project
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.projection import sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
-
-
-def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
-    """Median |d - z| / z of frame I's points moved by the image_2 motion A (frame I+1 in frame
-    I) against frame I+1's own LiDAR depth `depth` where it has a return at their pixel: a check of
-    the motion that does not use the images, and that sees the forward step; inf where none of
-    the points lands on a return."""
-    M = np.linalg.inv(A)
-    X = points @ M[:3, :3].T + M[:3, 3]
-    X = X[X[:, 2] > 0.5]
-    u, v = np.rint(project(X, K)[0]).astype(int).T
-    inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
-    d, z = depth[v[inside], u[inside]], X[inside, 2]
-    if not (d > 0).any():
-        return float("inf")  # no return to check against: no evidence for this motion
-    return float(np.median(np.abs(d[d > 0] - z[d > 0]) / z[d > 0]))
 
 
 def lidar_depth(image: np.ndarray, scan: np.ndarray, calib) -> np.ndarray:

@@ -22,8 +22,8 @@ from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points,
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.gauss_newton import gauss_jordan, so3_exp_small  # noqa: E402
 from models import gauss_newton as gn  # noqa: E402
-from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, masked_median,  # noqa: E402
-                                 project, pyr_down, rotations_differ, restore_explained, sample_at, solve, with_gradients)
+from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, lidar_depth_error,  # noqa: E402
+                                 masked_median, project, pyr_down, rotations_differ, restore_explained, sample_at, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
 D = torch.float64
@@ -459,6 +459,53 @@ def test_fine_restart_is_the_numpy_trackers():
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
 
 
+def test_lidar_depth_error_by_hand():
+    """Frame t-1's points moved 1 m forward (frame t 1 m ahead) against a hand-made scan of frame
+    t: the median |d - z| / z over the points that land on a return, z above 0.5 m and inside the
+    image, in numpy and in the graph (whose untrusted points do not count); no such point: inf
+    (numpy), 1e9 (graph)."""
+    K = np.array([[100.0, 0, 10], [0, 100.0, 10], [0, 0, 1]])
+    A = make_se3(np.eye(3), [0.0, 0.0, 1.0])
+    # z after the move: 9, 4, 19, 0.4 (too near), 9 (off the image), 4 (no return), 9 (untrusted)
+    X = np.array([[0, 0, 10], [0.4, 0, 5], [0, -0.95, 20], [0, 0, 1.4], [2.0, 0, 10], [0, 0.4, 5], [0.9, 0.9, 10.0]])
+    depth = np.zeros((21, 21), np.float32)
+    depth[10, 10], depth[10, 20], depth[5, 10] = 9.9, 4.4, 16.15  # errors 0.1, 0.1, 0.15
+    depth[20, 20] = 1.0  # under the untrusted point: error 8 / 9
+    assert direct.lidar_depth_error(X[:3], A, depth, K) == pytest.approx(0.1)
+    assert direct.lidar_depth_error(X, A, depth, K) == pytest.approx(np.median([0.1, 0.1, 0.15, 8 / 9]))
+    assert direct.lidar_depth_error(X[3:6], A, depth, K) == np.inf
+    trusted = np.array([1, 1, 1, 1, 1, 1, 0.0])
+    got = lidar_depth_error(_t(A)[None], _t(X)[None], _t(trusted)[None], _t(depth)[None, None], _k(K))
+    assert float(got[0]) == pytest.approx(np.median([0.1, 0.1, 0.15]))
+    none = lidar_depth_error(_t(A)[None], _t(X[3:6])[None], _t(trusted[3:6])[None], _t(depth)[None, None], _k(K))
+    assert float(none[0]) == 1e9
+
+
+@pytest.mark.parametrize("ratio, kept", [(0.9, "restart"), (0.7, "coarse to fine")])
+def test_restart_depth_is_the_numpy_trackers(ratio, kept):
+    """On a real pair where the finest level's restart fits frame t's LiDAR scan better (its depth
+    error is 0.78 of coarse to fine's) but is not kept by its photometric gain (the gain threshold
+    set out of reach here), the restart is kept where the ratio allows it, and the graph with
+    every confidence 1 keeps the same motion as the numpy tracker, within 1e-6 m."""
+    seq = _real_pair()
+    cfg = DirectConfig(affine_brightness=True, fine_restart=0.5, restart_depth=ratio)
+    odo = DirectOdometry(seq.calib, cfg)
+    for i in (10, 11):
+        odo.register_frame(seq.image(i), seq.scan(i))
+    init, prev = odo.motion2.copy(), odo._prev
+    cur = odo._frame(seq.image(12), seq.scan(12))
+    want = track(prev, cur, init, cfg)
+    coarse_to_fine = track(prev, cur, init, replace(cfg, restart_depth=0.0))
+    moved = np.linalg.norm(want[:3, 3] - coarse_to_fine[:3, 3])
+    assert (moved > 0.01) if kept == "restart" else (moved == 0)
+    pts, mask = pad_points(prev.points, cfg.points.capacity)
+    images = [_t(grey_image(seq.image(i)))[None, None] for i in (11, 12)]
+    got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
+                SolverSettings(cfg.iterations, affine=True, fine_restart=0.5, restart_depth=ratio),
+                depth2=_t(cur.depth)[None, None])[-1][0].numpy()
+    assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
+
+
 def test_consensus_gain_is_the_numpy_trackers():
     """The runtime's numpy `direct.consensus_gain` (which picks the classical mode's fine restart)
     is the graph's `consensus_gain` with every weight 1, on a real pair for three pairs of motions
@@ -510,6 +557,32 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
     gt = relatives(KittiSequence.open(small_synth).ground_truth.poses)
     err = np.linalg.norm(relatives(est)[:, :3, 3] - gt[:, :3, 3], axis=1)
     assert np.all(err < 0.03 * np.linalg.norm(gt[:, :3, 3], axis=1))
+
+
+def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, small_synth, tmp_path):
+    """Exported with `pt_restart_depth` (ratio 1: the restart is kept wherever it fits frame t's
+    scan better), the flow+pose graph takes frame t's LiDAR depth (`scan_depth2`), which the
+    torch-free runtime feeds at the camera's own size, and gives torch's trajectory; the scan
+    changes which pose is kept on some pairs (the trajectory differs from the one without it)."""
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from export.onnx_export import ExportConfig, export_checkpoint
+    from models.checkpoint import build_model, load_checkpoint
+    from models.predict import predict_sequence
+
+    ck = load_checkpoint(points_model[0])
+    export_checkpoint(points_model[0], ExportConfig(out=tmp_path / "o", solver={"pt_restart_depth": 1.0}))
+    inputs = [i["name"] for i in load_manifest(tmp_path / "o")["stages"]["flowpose"]["inputs"]]
+    assert "scan_depth2" in inputs and "scan_depth2" not in [
+        i["name"] for i in load_manifest(points_model[1])["stages"]["flowpose"]["inputs"]]
+    torch_traj = predict_sequence(build_model({**ck, "config": replace(ck["config"], pt_restart_depth=1.0)}),
+                                  small_synth)
+    without = predict_sequence(build_model(ck), small_synth)
+    run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
+    est = read_poses(tmp_path / "p.txt").poses
+    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
+    assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
 
 
 # pt_select without pt_refine, pair by pair in a batch: test_rotation_gate_in_the_exported_graphs_pair_by_pair
@@ -687,6 +760,8 @@ def test_bad_solver_settings_are_one_clear_error():
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_iters=15"]))
     with pytest.raises(ValueError, match="pt_gate must be in"):
         D3LVOConfig.small(pose_head="points", pt_gate=1.5)
+    with pytest.raises(ValueError, match="pt_restart_depth decides on the finest level's restart"):
+        D3LVOConfig.small(pose_head="points", **solver_settings(["pt_restart_depth=0.5"]))
     with pytest.raises(D3LVOInputError, match="solver settings only"):
         solver_settings(["height=10"])
 
