@@ -29,7 +29,7 @@ DEPTH_INPUT = "scan_depth2"
 
 def solver_input_names(model: D3LVO) -> list[str]:
     grey1, stack2 = pyramid_input_names(len(model.cfg.pt_iters))
-    return grey1 + stack2 + list(SOLVER_INPUTS) + ([DEPTH_INPUT] if model.cfg.pt_restart_depth > 0 else [])
+    return grey1 + stack2 + list(SOLVER_INPUTS) + ([DEPTH_INPUT] if model.cfg.checks_restart_on_scan else [])
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:

@@ -91,10 +91,11 @@ class D3LVOConfig:
     # where it explains the points better by more than this (`point_solver.consensus_gain`): a
     # coarse level can hold a wrong minimum (docs/evaluation.md)
     pt_fine_restart: float = 0.0
-    # above 0 (with pt_fine_restart): the flow+pose graph also takes frame t's LiDAR depth at the
-    # camera's resolution (`scan_depth2`), and the restart is also kept where its depth error against
-    # that scan is below this times the coarse-to-fine pose's (`point_solver.lidar_depth_error`):
-    # the scan sees a forward step the photometric costs can miss (docs/evaluation.md)
+    # above 0 (and pt_fine_restart too; with it 0 there is no restart to check): the flow+pose
+    # graph also takes frame t's LiDAR depth at the camera's resolution (`scan_depth2`), and the
+    # restart is also kept where its depth error against that scan is below this times the
+    # coarse-to-fine pose's (`point_solver.lidar_depth_error`): the scan sees a forward step the
+    # photometric costs can miss (docs/evaluation.md)
     pt_restart_depth: float = 0.0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
@@ -186,8 +187,6 @@ class D3LVOConfig:
             raise ValueError(f"pt_fine_restart must be in [0, 1) (0: off), not {self.pt_fine_restart!r}")
         if not (isinstance(self.pt_restart_depth, (int, float)) and 0 <= self.pt_restart_depth <= 1):
             raise ValueError(f"pt_restart_depth must be in [0, 1] (0: off), not {self.pt_restart_depth!r}")
-        if self.pt_restart_depth > 0 and self.pt_fine_restart <= 0:
-            raise ValueError("pt_restart_depth decides on the finest level's restart: it needs pt_fine_restart above 0")
         if not (isinstance(self.pt_refine, int) and self.pt_refine >= 0):
             raise ValueError(f"pt_refine must be a whole number of steps, 0 or more, not {self.pt_refine!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):
@@ -226,6 +225,11 @@ class D3LVOConfig:
     def point_solver(self) -> bool:
         """The direct solver on the LiDAR point list under a learned confidence."""
         return self.pose_head == "points"
+
+    @property
+    def checks_restart_on_scan(self) -> bool:
+        """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`) for the restart's check."""
+        return self.point_solver and self.pt_fine_restart > 0 and self.pt_restart_depth > 0
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

@@ -139,10 +139,12 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 # frame t's grey matched to frame t-1's mean and spread at every step (pt_affine, chosen on the
 # validation drives at the end of this script), the finest level also solved alone from the start
 # and kept where it explains the points better by 0.001 (pt_fine_restart, chosen on the validation
-# drives at the end of this script), and export from exactly that file
+# drives at the end of this script) or where its depth error against frame t's own LiDAR scan is
+# below half the coarse-to-fine pose's (pt_restart_depth, chosen last, at the very end), and
+# export from exactly that file
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
-  pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True, pt_fine_restart=0.001))"
+  pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True, pt_fine_restart=0.001, pt_restart_depth=0.5))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
 "$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
 "$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
@@ -195,10 +197,10 @@ for s in heldout_09 heldout_10; do
   "$D3LVO" run --seq-dir "$OUT/data/$s" --onnx "$OUT/rgb_onnx" --out "$OUT/eval/rgb_$s.txt" --overwrite
 done
 
-# the sweeps below were measured before pt_affine was chosen (last, at the end of this script), so
-# they start from the shipped file with it off
+# the sweeps below were measured before pt_affine was chosen (at the end of this script), so they
+# start from the shipped file with it off (and without the restart's scan check, chosen later)
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
-  '$OUT/affine_off.pt', dict(pt_affine=False))"
+  '$OUT/affine_off.pt', dict(pt_affine=False, pt_restart_depth=0.0))"
 "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/affine_off"
 # the sweeps below select as the model card's tables of them: pt_select 0.01, no rotation gate
 SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
@@ -314,7 +316,7 @@ done
 # more than the threshold (pt_fine_restart; docs/evaluation.md), on the twenty-four validation
 # drives: the classical mode at 0.005, 0.02 and 0.001, the network at 0.005 and 0.001; 0.001 ships
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
-  '$OUT/restart_off.pt', dict(pt_fine_restart=0.0))"
+  '$OUT/restart_off.pt', dict(pt_fine_restart=0.0, pt_restart_depth=0.0))"
 for t in 0.005 0.02 0.001; do
   "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --set pt_fine_restart=$t
   for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
@@ -332,16 +334,40 @@ for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "
 done
 # up to 9 Gauss-Newton steps per level instead of 15 (pt_iters; docs/evaluation.md), both modes, on
 # the twenty-four validation drives and then the held-out ones; it costs accuracy with traffic and
-# does not ship. Then 40 steps at the finest level, the classical mode on eight static ones
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_9" --set pt_iters=9,9,9
+# does not ship. Then 40 steps at the finest level, the classical mode on eight static ones (both
+# measured before the restart's scan check was chosen)
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_9" --set pt_iters=9,9,9 --set pt_restart_depth=0
 for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/heldout_?? "$OUT"/data/static_2?? \
          "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
   s=$(basename "$d")
   "$D3LVO" run "$d" --onnx "$OUT/steps_9" --backend onnxruntime --threads 1 --out "$OUT/eval/steps_9_$s.txt" --overwrite
   "$D3LVO" run "$d" --onnx "$OUT/steps_9" --method direct --out "$OUT/eval/steps_9_direct_$s.txt" --overwrite
 done
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_40" --set pt_iters=15,15,40
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_40" --set pt_iters=15,15,40 --set pt_restart_depth=0
 for s in val_static_2 val_static_3 val_static_4 val_static_608 val_static_609 val_static_610 val_static_611 \
          val_static_614; do
   "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/steps_40" --method direct --out "$OUT/eval/steps_40_direct_$s.txt" --overwrite
+done
+# the finest level's restart also kept where its depth error against frame t's own LiDAR scan is
+# below R times the coarse-to-fine pose's (pt_restart_depth; docs/evaluation.md), on the
+# twenty-four validation drives: the classical mode at 0.5 and 0.7, the network at 0.5; 0.5 ships
+# (set in the slimmed default.pt above). Then the held-out drives again with the shipped model
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  '$OUT/scan_off.pt', dict(pt_restart_depth=0.0))"
+"$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_off"
+for r in 0.5 0.7; do
+  "$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_$r" --set pt_restart_depth=$r
+  for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
+    s=$(basename "$d")
+    "$D3LVO" run "$d" --onnx "$OUT/scan_$r" --method direct --out "$OUT/eval/scan_${r}_direct_$s.txt" --overwrite
+    [ "$r" = 0.7 ] || "$D3LVO" run "$d" --onnx "$OUT/scan_$r" --backend onnxruntime --threads 1 \
+      --out "$OUT/eval/scan_${r}_$s.txt" --overwrite
+  done
+done
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
+  s=$(basename "$d")
+  "$D3LVO" run "$d" --onnx "$OUT/scan_off" --backend onnxruntime --threads 1 --out "$OUT/eval/scan_off_$s.txt" --overwrite
+  "$D3LVO" run "$d" --onnx "$OUT/scan_off" --method direct --out "$OUT/eval/scan_off_direct_$s.txt" --overwrite
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
+  "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done

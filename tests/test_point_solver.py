@@ -585,6 +585,24 @@ def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, 
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
 
 
+def test_the_scan_is_an_input_only_where_a_restart_checks_it():
+    """`scan_depth2` is a flow+pose input where the finest level's restart runs and the check is
+    on; `--set pt_fine_restart=0` on a model that checks turns both off, not into an error."""
+    from types import SimpleNamespace
+
+    from export.stages import solver_input_names
+    from models.config import D3LVOConfig
+
+    def takes_scan(**kw) -> bool:
+        return "scan_depth2" in solver_input_names(SimpleNamespace(cfg=D3LVOConfig.small(pose_head="points", **kw)))
+
+    assert takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.5)
+    assert not takes_scan(pt_fine_restart=0.0, pt_restart_depth=0.5)
+    assert not takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.0)
+    assert DirectConfig.of_model(D3LVOConfig.small(pose_head="points", pt_fine_restart=0.001,
+                                                   pt_restart_depth=0.5).to_dict()).restart_depth == 0.5
+
+
 # pt_select without pt_refine, pair by pair in a batch: test_rotation_gate_in_the_exported_graphs_pair_by_pair
 @pytest.mark.parametrize("select,refine", [(0.0, 0), (0.01, 2)])
 def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select, refine):
@@ -760,8 +778,8 @@ def test_bad_solver_settings_are_one_clear_error():
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_iters=15"]))
     with pytest.raises(ValueError, match="pt_gate must be in"):
         D3LVOConfig.small(pose_head="points", pt_gate=1.5)
-    with pytest.raises(ValueError, match="pt_restart_depth decides on the finest level's restart"):
-        D3LVOConfig.small(pose_head="points", **solver_settings(["pt_restart_depth=0.5"]))
+    with pytest.raises(ValueError, match="pt_restart_depth must be in"):
+        D3LVOConfig.small(pose_head="points", **solver_settings(["pt_restart_depth=2"]))
     with pytest.raises(D3LVOInputError, match="solver settings only"):
         solver_settings(["height=10"])
 
