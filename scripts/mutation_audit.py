@@ -169,6 +169,12 @@ MUTATIONS = [
     Mutation("the classical mode takes the model's damping as its stop threshold", "d3lvo_deploy/direct.py",
              'stop_step=model_config["pt_stop"]', 'stop_step=model_config["pt_damping"]',
              ("tests/test_point_solver.py::test_direct_method_is_the_models_classical_mode",)),
+    Mutation("the runtime feeds frame t-1's scan to the restart's check", "d3lvo_deploy/points.py",
+             'feeds["scan_depth2"] = cur.depth[None, None]', 'feeds["scan_depth2"] = prev.depth[None, None]',
+             ("tests/test_point_solver.py::test_runtime_feeds_frame_ts_own_scan",)),
+    Mutation("the classical mode keeps the restart where it fits frame t's scan worse", "d3lvo_deploy/direct.py",
+             "                < cfg.restart_depth * lidar_depth_error(", "                > cfg.restart_depth * lidar_depth_error(",
+             ("tests/test_point_solver.py::test_restart_depth_is_the_numpy_trackers",)),
 ]
 
 

@@ -585,6 +585,27 @@ def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, 
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
 
 
+def test_runtime_feeds_frame_ts_own_scan():
+    """Where the bundled graph checks the restart against the scan, the runtime makes each frame's
+    LiDAR depth at the camera's size from its whole scan (the cull before it drops no return that
+    lands in the image) and feeds the pair's frame t's, not frame t-1's."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.odometry import Odometry, clean_scan
+    from d3lvo_deploy.points import solver_feeds
+    from d3lvo_deploy.projection import sparse_depth
+
+    seq = _real_pair()
+    odo = Odometry(bundled_model_dir(), seq.calib)
+    assert odo.takes_depth
+    prev, cur = (odo.prepare(seq.image(i), seq.scan(i)).solver for i in (4, 5))
+    for frame, i in ((prev, 4), (cur, 5)):
+        h, w = seq.image(i).shape[:2]
+        want = sparse_depth(clean_scan(seq.scan(i)), seq.calib.P_velo_to_image2, w, h)
+        assert (want > 0).sum() > 10000 and np.array_equal(frame.depth, want)
+    assert np.array_equal(solver_feeds(prev, cur, seq.calib.K2, 2048)["scan_depth2"][0, 0], cur.depth)
+    assert not np.array_equal(prev.depth, cur.depth)
+
+
 def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     """`scan_depth2` is a flow+pose input where the finest level's restart runs and the check is
     on; `--set pt_fine_restart=0` on a model that checks turns both off, not into an error."""
