@@ -199,20 +199,30 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
         prev_lvl = prev.levels[lvl]
         ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
         M = align_level(M, X, ref, cur.levels[lvl], cfg.iterations[cfg.levels - 1 - lvl], cfg)
-    if cfg.refine:
-        M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
-    A = se3_inv(M)
+
+    def refined(M: np.ndarray) -> np.ndarray:
+        return align_level(M, X, ref, cur.levels[0], cfg.refine, cfg) if cfg.refine else M
+
+    A = se3_inv(refined(M))
     if cfg.fine_restart > 0 and cfg.levels > 1:
-        M = align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)
-        if cfg.refine:
-            M = align_level(M, X, ref, cur.levels[0], cfg.refine, cfg)
-        restart = se3_inv(M)
-        if consensus_gain(prev, cur, restart, A) > cfg.fine_restart or (
-                cfg.restart_depth > 0 and cur.depth is not None
-                and lidar_depth_error(X, restart, cur.depth, prev.levels[0].K)
-                < cfg.restart_depth * lidar_depth_error(X, A, cur.depth, prev.levels[0].K)):
+        restart = se3_inv(refined(align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)))
+        if keeps_restart(prev, cur, restart, A, cfg):
             A = restart
     return A
+
+
+def keeps_restart(prev: TrackedFrame, cur: TrackedFrame, restart: np.ndarray, A: np.ndarray,
+                  cfg: DirectConfig) -> bool:
+    """The finest level's restart replaces the coarse-to-fine motion A where it explains frame t-1's
+    points better by more than `fine_restart`, or (`restart_depth`) where it fits frame t's own
+    LiDAR scan better by that ratio."""
+    if consensus_gain(prev, cur, restart, A) > cfg.fine_restart:
+        return True
+    if cfg.restart_depth <= 0 or cur.depth is None:
+        return False
+    K = prev.levels[0].K
+    return (lidar_depth_error(prev.points, restart, cur.depth, K)
+            < cfg.restart_depth * lidar_depth_error(prev.points, A, cur.depth, K))
 
 
 def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:

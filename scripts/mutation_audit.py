@@ -173,7 +173,7 @@ MUTATIONS = [
              'feeds["scan_depth2"] = cur.depth[None, None]', 'feeds["scan_depth2"] = prev.depth[None, None]',
              ("tests/test_point_solver.py::test_runtime_feeds_frame_ts_own_scan",)),
     Mutation("the classical mode keeps the restart where it fits frame t's scan worse", "d3lvo_deploy/direct.py",
-             "                < cfg.restart_depth * lidar_depth_error(", "                > cfg.restart_depth * lidar_depth_error(",
+             "            < cfg.restart_depth * lidar_depth_error(", "            > cfg.restart_depth * lidar_depth_error(",
              ("tests/test_point_solver.py::test_restart_depth_is_the_numpy_trackers",)),
 ]
 
