@@ -303,7 +303,8 @@ class DirectOdometry:
         scan = rows_in_view(clean_scan(points), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
-        depth = sparse_depth(scan, P, w, h) if self.cfg.restart_depth > 0 and self.cfg.fine_restart > 0 else None
+        checks = self.cfg.restart_depth > 0 and self.cfg.fine_restart > 0 and self.cfg.levels > 1
+        depth = sparse_depth(scan, P, w, h) if checks else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)
 

@@ -95,7 +95,8 @@ class D3LVOConfig:
     # graph also takes frame t's LiDAR depth at the camera's resolution (`scan_depth2`), and the
     # restart is also kept where its depth error against that scan is below this times the
     # coarse-to-fine pose's (`point_solver.lidar_depth_error`): the scan sees a forward step the
-    # photometric costs can miss (docs/evaluation.md)
+    # photometric costs can miss (docs/evaluation.md). Training solves without it: its samples
+    # carry no scan, and the check picks between two poses without a gradient
     pt_restart_depth: float = 0.0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
@@ -229,7 +230,8 @@ class D3LVOConfig:
     @property
     def checks_restart_on_scan(self) -> bool:
         """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`) for the restart's check."""
-        return self.point_solver and self.pt_fine_restart > 0 and self.pt_restart_depth > 0
+        return (self.point_solver and self.pt_fine_restart > 0 and self.pt_restart_depth > 0
+                and len(self.pt_iters) > 1)
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

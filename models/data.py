@@ -25,9 +25,9 @@ import torch
 from torch.utils.data import Dataset
 
 from d3lvo_deploy.errors import D3LVOInputError
-from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.geometry import change_frame, relative, rot_to_quat
 from d3lvo_deploy.frames import FramePreprocessor
+from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.projection import View, sparse_depth
 from d3lvo_deploy.sequence import KittiSequence

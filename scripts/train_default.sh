@@ -198,7 +198,7 @@ for s in heldout_09 heldout_10; do
 done
 
 # the sweeps below were measured before pt_affine was chosen (at the end of this script), so they
-# start from the shipped file with it off (and without the restart's scan check, chosen later)
+# start from the shipped file with it off (and without the restart's scan check, chosen after them)
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   '$OUT/affine_off.pt', dict(pt_affine=False, pt_restart_depth=0.0))"
 "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/affine_off"

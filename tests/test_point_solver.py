@@ -161,6 +161,50 @@ def test_two_solves_per_pair_on_one_copy_of_its_images(gather):
     assert np.abs(both[0] - both[2]).max() > 1e-2  # two different pairs
 
 
+def test_the_restarts_scan_check_batched_as_the_graph_batches_it():
+    """The finest level's restart checked against each pair's own frame t scan (`restart_depth`,
+    the gain threshold out of reach so that the scan alone decides), batched as the bundled graph
+    batches it (two pairs, two weightings each, one scan per pair): every row is its pair solved
+    alone, and the check keeps the restart on some rows and not on others."""
+    motions = [make_se3(axis_angle_to_rot([0.01, -0.03, 0.005]), [0.1, -0.05, 0.9]),
+               make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.05, 0.0, 0.6])]
+    scenes = [_plane_inputs(A) for A in motions]
+    n = max(len(sc[3]) for sc in scenes) + 100
+    rng = np.random.default_rng(0)
+    g0, g1, pts, mask, w, depth = [], [], [], [], [], []
+    for A, (calib, _, (a, b, _, _), X) in zip(motions, scenes):
+        p, m = pad_points(X, n)
+        g0.append(a), g1.append(b), pts.append(_t(p)), mask.append(_t(m))
+        w.append(mask[-1] * _t(rng.uniform(0.2, 1.0, m.shape)))
+        Mt = se3_inv(A)  # frame t's scan of the plane: its points seen from frame t, 3 cm of noise
+        Xt = X @ Mt[:3, :3].T + Mt[:3, 3]
+        u, v = np.rint(project(_t(Xt)[None], _k(calib.K2))[0][0].numpy()).astype(int).T
+        d = np.zeros(b.shape[-2:], np.float32)
+        ok = (u >= 0) & (u < d.shape[1]) & (v >= 0) & (v < d.shape[0])
+        d[v[ok], u[ok]] = Xt[ok, 2] + rng.normal(0.0, 0.03, ok.sum())
+        depth.append(_t(d)[None, None])
+    K = _k(scenes[0][0].K2)
+    starts = [A.copy() for A in motions]  # near the truth, as a constant-velocity start
+    for A in starts:
+        A[:3, 3] *= 0.97
+    s = SolverSettings(iterations=(3, 3, 3), fine_restart=0.5, restart_depth=1.0)
+    pair = lambda a, c: torch.stack([a, c], 1).flatten(0, 1)  # noqa: E731
+    grey1, stack2 = image_pyramids(torch.cat(g0), torch.cat(g1), 3)
+    P, M, W = torch.cat(pts), torch.cat(mask), torch.cat(w)
+    I = _t(np.stack(starts))
+    both = solve(grey1, stack2, pair(P, P), pair(W, M), K.repeat(4, 1), pair(I, I), s,
+                 mask=pair(M, M), depth2=torch.cat(depth))[-1]
+    kept = []
+    for i in range(2):
+        alone = image_pyramids(g0[i], g1[i], 3)
+        for j, weight in enumerate((w[i], mask[i])):
+            want = solve(*alone, pts[i], weight, K, I[i:i + 1], s, mask=mask[i], depth2=depth[i])[-1][0]
+            np.testing.assert_allclose(both[2 * i + j].numpy(), want.numpy(), atol=1e-9)
+            unchecked = solve(*alone, pts[i], weight, K, I[i:i + 1], replace(s, restart_depth=0.0), mask=mask[i])[-1][0]
+            kept.append(bool((want - unchecked).abs().max() > 1e-9))
+    assert any(kept) and not all(kept)
+
+
 def test_the_next_start_is_the_weighted_solve_and_the_kept_pose_the_classical_one(monkeypatch):
     """PointPose with `pt_select`: of its one batch of two solves, `start_next` is the solve with the
     confidence's weights and, where the selection keeps the classical pose (a threshold of 0.999
@@ -471,6 +515,7 @@ def test_lidar_depth_error_by_hand():
     depth = np.zeros((21, 21), np.float32)
     depth[10, 10], depth[10, 20], depth[5, 10] = 9.9, 4.4, 16.15  # errors 0.1, 0.1, 0.15
     depth[20, 20] = 1.0  # under the untrusted point: error 8 / 9
+    depth[11, 11] = 50.0  # where the point off the image would wrap to in a flattened map
     assert direct.lidar_depth_error(X[:3], A, depth, K) == pytest.approx(0.1)
     assert direct.lidar_depth_error(X, A, depth, K) == pytest.approx(np.median([0.1, 0.1, 0.15, 8 / 9]))
     assert direct.lidar_depth_error(X[3:6], A, depth, K) == np.inf
@@ -479,6 +524,24 @@ def test_lidar_depth_error_by_hand():
     assert float(got[0]) == pytest.approx(np.median([0.1, 0.1, 0.15]))
     none = lidar_depth_error(_t(A)[None], _t(X[3:6])[None], _t(trusted[3:6])[None], _t(depth)[None, None], _k(K))
     assert float(none[0]) == 1e9
+
+
+def test_lidar_depth_error_rows_on_their_own_pairs_scan():
+    """Batched as the solver batches it (two pairs, two poses each, rows 2i and 2i + 1 on pair i's
+    depth map), each row's error is that pose's on its own pair alone; the two pairs' maps differ,
+    so a row read against the other pair's map would show."""
+    rng = np.random.default_rng(1)
+    K = np.array([[100.0, 0, 10], [0, 100.0, 10], [0, 0, 1]])
+    X = np.stack([rng.uniform(-0.8, 0.8, 50), rng.uniform(-0.8, 0.8, 50), rng.uniform(4, 12, 50)], 1)
+    depths = [np.where(rng.random((21, 21)) < 0.6, rng.uniform(3, 12, (21, 21)), 0).astype(np.float32)
+              for _ in range(2)]
+    poses = [make_se3(axis_angle_to_rot([0, 0.01 * j, 0]), [0.0, 0.0, 0.3 * j]) for j in range(4)]
+    got = lidar_depth_error(_t(np.stack(poses)), _t(X)[None].repeat(4, 1, 1), torch.ones(4, 50, dtype=D),
+                            _t(np.stack(depths))[:, None], _k(K).repeat(4, 1))
+    for j, A in enumerate(poses):
+        assert float(got[j]) == pytest.approx(direct.lidar_depth_error(X, A, depths[j // 2], K), rel=1e-6)
+    assert direct.lidar_depth_error(X, poses[0], depths[0], K) != pytest.approx(
+        direct.lidar_depth_error(X, poses[0], depths[1], K))
 
 
 @pytest.mark.parametrize("ratio, kept", [(0.9, "restart"), (0.7, "coarse to fine")])
@@ -607,8 +670,9 @@ def test_runtime_feeds_frame_ts_own_scan():
 
 
 def test_the_scan_is_an_input_only_where_a_restart_checks_it():
-    """`scan_depth2` is a flow+pose input where the finest level's restart runs and the check is
-    on; `--set pt_fine_restart=0` on a model that checks turns both off, not into an error."""
+    """`scan_depth2` is a flow+pose input where the finest level's restart runs (on more than one
+    level) and the check is on; a config that checks with the restart off (what `--set
+    pt_fine_restart=0` makes of the bundled model) is valid and takes no scan."""
     from types import SimpleNamespace
 
     from export.stages import solver_input_names
@@ -620,6 +684,7 @@ def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     assert takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.5)
     assert not takes_scan(pt_fine_restart=0.0, pt_restart_depth=0.5)
     assert not takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.0)
+    assert not takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.5, pt_iters=(15,))
     assert DirectConfig.of_model(D3LVOConfig.small(pose_head="points", pt_fine_restart=0.001,
                                                    pt_restart_depth=0.5).to_dict()).restart_depth == 0.5
 
