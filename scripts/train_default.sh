@@ -317,14 +317,19 @@ done
 # drives: the classical mode at 0.005, 0.02 and 0.001, the network at 0.005 and 0.001; 0.001 ships
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   '$OUT/restart_off.pt', dict(pt_fine_restart=0.0, pt_restart_depth=0.0))"
-for t in 0.005 0.02 0.001; do
-  "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --set pt_fine_restart=$t
+# both modes of the model folder $2 on the twenty-four validation drives, written as
+# eval/$1_direct_DRIVE.txt and eval/$1_DRIVE.txt; a third argument "classical": that mode only
+on_validation() {
   for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
     s=$(basename "$d")
-    "$D3LVO" run "$d" --onnx "$OUT/restart_$t" --method direct --out "$OUT/eval/restart_${t}_direct_$s.txt" --overwrite
-    [ "$t" = 0.02 ] || "$D3LVO" run "$d" --onnx "$OUT/restart_$t" --backend onnxruntime --threads 1 \
-      --out "$OUT/eval/restart_${t}_$s.txt" --overwrite
+    "$D3LVO" run "$d" --onnx "$2" --method direct --out "$OUT/eval/$1_direct_$s.txt" --overwrite
+    [ "${3:-}" = classical ] || "$D3LVO" run "$d" --onnx "$2" --backend onnxruntime --threads 1 \
+      --out "$OUT/eval/$1_$s.txt" --overwrite
   done
+}
+for t in 0.005 0.02 0.001; do
+  "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --set pt_fine_restart=$t
+  on_validation "restart_$t" "$OUT/restart_$t" $([ "$t" = 0.02 ] && echo classical)
 done
 # then the held-out drives again, the shipped model and its classical mode (docs/evaluation.md)
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
@@ -351,23 +356,17 @@ done
 # the finest level's restart also kept where its depth error against frame t's own LiDAR scan is
 # below R times the coarse-to-fine pose's (pt_restart_depth; docs/evaluation.md), on the
 # twenty-four validation drives: the classical mode at 0.5 and 0.7, the network at 0.5; 0.5 ships
-# (set in the slimmed default.pt above). Then the held-out drives again with the shipped model
+# (set in the slimmed default.pt above; the held-out runs of the shipped model above have it).
+# Then the held-out drives without it
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   '$OUT/scan_off.pt', dict(pt_restart_depth=0.0))"
 "$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_off"
 for r in 0.5 0.7; do
   "$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_$r" --set pt_restart_depth=$r
-  for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
-    s=$(basename "$d")
-    "$D3LVO" run "$d" --onnx "$OUT/scan_$r" --method direct --out "$OUT/eval/scan_${r}_direct_$s.txt" --overwrite
-    [ "$r" = 0.7 ] || "$D3LVO" run "$d" --onnx "$OUT/scan_$r" --backend onnxruntime --threads 1 \
-      --out "$OUT/eval/scan_${r}_$s.txt" --overwrite
-  done
+  on_validation "scan_$r" "$OUT/scan_$r" $([ "$r" = 0.7 ] && echo classical)
 done
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
   s=$(basename "$d")
   "$D3LVO" run "$d" --onnx "$OUT/scan_off" --backend onnxruntime --threads 1 --out "$OUT/eval/scan_off_$s.txt" --overwrite
   "$D3LVO" run "$d" --onnx "$OUT/scan_off" --method direct --out "$OUT/eval/scan_off_direct_$s.txt" --overwrite
-  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/default_$s.txt" --overwrite
-  "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done

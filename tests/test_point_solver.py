@@ -459,6 +459,16 @@ def _real_pair():
     return KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
 
 
+def _pair_11_12(cfg: DirectConfig):
+    """The real pair 11-12 as the classical mode tracks it after frames 10 and 11: the sequence,
+    the constant-velocity start and both frames."""
+    seq = _real_pair()
+    odo = DirectOdometry(seq.calib, cfg)
+    for i in (10, 11):
+        odo.register_frame(seq.image(i), seq.scan(i))
+    return seq, odo.motion2.copy(), odo._prev, odo._frame(seq.image(12), seq.scan(12))
+
+
 @pytest.mark.parametrize("scale_every, refine, affine", [(3, 0, False), (1, 0, False), (3, 5, False), (3, 0, True)])
 def test_confidence_one_is_the_numpy_tracker(scale_every, refine, affine):
     """On a real frame pair, the solver with every confidence 1 gives the motion of
@@ -486,13 +496,8 @@ def test_fine_restart_is_the_numpy_trackers():
     explains the points better than coarse to fine (it moves the motion by over 1 cm), the solver
     with every confidence 1 keeps the same motion as the numpy tracker's `fine_restart` (float64,
     its own cost in numpy) within 1e-6 m."""
-    seq = _real_pair()
     cfg = DirectConfig(affine_brightness=True, fine_restart=0.005)
-    odo = DirectOdometry(seq.calib, cfg)
-    for i in (10, 11):
-        odo.register_frame(seq.image(i), seq.scan(i))
-    init, prev = odo.motion2.copy(), odo._prev
-    cur = odo._frame(seq.image(12), seq.scan(12))
+    seq, init, prev, cur = _pair_11_12(cfg)
     want = track(prev, cur, init, cfg)
     coarse_to_fine = track(prev, cur, init, replace(cfg, fine_restart=0.0))
     assert np.linalg.norm(want[:3, 3] - coarse_to_fine[:3, 3]) > 0.01  # the restart is kept here
@@ -550,13 +555,8 @@ def test_restart_depth_is_the_numpy_trackers(ratio, kept):
     error is 0.78 of coarse to fine's) but is not kept by its photometric gain (the gain threshold
     set out of reach here), the restart is kept where the ratio allows it, and the graph with
     every confidence 1 keeps the same motion as the numpy tracker, within 1e-6 m."""
-    seq = _real_pair()
     cfg = DirectConfig(affine_brightness=True, fine_restart=0.5, restart_depth=ratio)
-    odo = DirectOdometry(seq.calib, cfg)
-    for i in (10, 11):
-        odo.register_frame(seq.image(i), seq.scan(i))
-    init, prev = odo.motion2.copy(), odo._prev
-    cur = odo._frame(seq.image(12), seq.scan(12))
+    seq, init, prev, cur = _pair_11_12(cfg)
     want = track(prev, cur, init, cfg)
     coarse_to_fine = track(prev, cur, init, replace(cfg, restart_depth=0.0))
     moved = np.linalg.norm(want[:3, 3] - coarse_to_fine[:3, 3])
