@@ -68,6 +68,16 @@ class DirectConfig:
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
 
+    @property
+    def restarts(self) -> bool:
+        """The finest level is also solved alone from the start."""
+        return self.fine_restart > 0 and self.levels > 1
+
+    @property
+    def checks_restart_on_scan(self) -> bool:
+        """The restart is also judged by frame t's LiDAR depth, which each frame then keeps."""
+        return self.restarts and self.restart_depth > 0
+
     @classmethod
     def of_model(cls, model_config: dict) -> "DirectConfig":
         """The classical mode of a point-solver model (its manifest's `model_config`): the same
@@ -204,7 +214,7 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
         return align_level(M, X, ref, cur.levels[0], cfg.refine, cfg) if cfg.refine else M
 
     A = se3_inv(refined(M))
-    if cfg.fine_restart > 0 and cfg.levels > 1:
+    if cfg.restarts:
         restart = se3_inv(refined(align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)))
         if keeps_restart(prev, cur, restart, A, cfg):
             A = restart
@@ -218,7 +228,7 @@ def keeps_restart(prev: TrackedFrame, cur: TrackedFrame, restart: np.ndarray, A:
     LiDAR scan better by that ratio."""
     if consensus_gain(prev, cur, restart, A) > cfg.fine_restart:
         return True
-    if cfg.restart_depth <= 0 or cur.depth is None:
+    if not cfg.checks_restart_on_scan or cur.depth is None:
         return False
     K = prev.levels[0].K
     return (lidar_depth_error(prev.points, restart, cur.depth, K)
@@ -303,8 +313,7 @@ class DirectOdometry:
         scan = rows_in_view(clean_scan(points), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
-        checks = self.cfg.restart_depth > 0 and self.cfg.fine_restart > 0 and self.cfg.levels > 1
-        depth = sparse_depth(scan, P, w, h) if checks else None
+        depth = sparse_depth(scan, P, w, h) if self.cfg.checks_restart_on_scan else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)
 

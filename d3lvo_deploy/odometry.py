@@ -20,7 +20,7 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
 from .onnx_model import SessionConfig, StageModel, camera_inputs
-from .points import SolverFrame, point_config, solver_feeds
+from .points import SCAN_DEPTH_INPUT, SolverFrame, point_config, solver_feeds
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view
 
 STAGES = ("project", "completion", "encoder", "flowpose")
@@ -85,7 +85,7 @@ class Odometry:
         takes_pyramids = "stack2_p0" in self.model.input_names("flowpose")
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
-        self.takes_depth = "scan_depth2" in self.model.input_names("flowpose")
+        self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
         self.reset()
 
     @property

@@ -19,11 +19,12 @@ from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, Sessi
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import for_engine, load_manifest
+from .points import SCAN_DEPTH_INPUT
 
 # the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
 # point solver's image pyramids `image1_pK`, `stack2_pK` too)
 CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics",
-                            "scan_depth2")
+                            SCAN_DEPTH_INPUT)
 
 
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:

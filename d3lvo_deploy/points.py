@@ -15,6 +15,10 @@ import numpy as np
 
 from .projection import rows_in_depth, sparse_depth
 
+# the flow+pose graph's input for frame t's LiDAR depth, where it checks the finest level's restart
+# against the scan (`pt_restart_depth`)
+SCAN_DEPTH_INPUT = "scan_depth2"
+
 
 @dataclass
 class PointConfig:
@@ -178,5 +182,5 @@ def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: i
         for k, (a, b) in enumerate(zip(prev.pyramid, cur.pyramid)):
             feeds[f"image1_p{k}"], feeds[f"stack2_p{k}"] = a[None, :1], b[None]
     if cur.depth is not None:
-        feeds["scan_depth2"] = cur.depth[None, None]
+        feeds[SCAN_DEPTH_INPUT] = cur.depth[None, None]
     return feeds

@@ -22,6 +22,7 @@ import d3lvo_deploy
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
 from d3lvo_deploy.manifest import sha256_file as sha256
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT
 from models.checkpoint import build_model, load_checkpoint
 from models.config import check_solver_settings
 from models.d3lvo import D3LVO
@@ -113,7 +114,7 @@ def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str
            "image_intrinsics": K}
     if model.cfg.checks_restart_on_scan:  # frame t's LiDAR depth: a return on a random quarter of the pixels
         depth = 5.0 + 30.0 * torch.rand(1, 1, H, W, generator=g)
-        out["scan_depth2"] = depth * (torch.rand(1, 1, H, W, generator=g) < 0.25).float()
+        out[SCAN_DEPTH_INPUT] = depth * (torch.rand(1, 1, H, W, generator=g) < 0.25).float()
     return out
 
 
@@ -124,7 +125,7 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
         if n.startswith(("image1_p", "stack2_p")):
             k = n.rsplit("_p", 1)[1]
             dynamic.setdefault(n, {}).update({2: f"image_height_p{k}", 3: f"image_width_p{k}"})
-        if n == "scan_depth2":  # frame t's LiDAR depth, at the finest level's size
+        if n == SCAN_DEPTH_INPUT:  # frame t's LiDAR depth, at the finest level's size
             dynamic.setdefault(n, {}).update({2: "image_height_p0", 3: "image_width_p0"})
     dynamic = dynamic or None
     with warnings.catch_warnings():

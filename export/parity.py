@@ -20,7 +20,7 @@ from d3lvo_deploy.geometry import relative, rotation_angle_precise
 from d3lvo_deploy.bundled import find_real_frames
 from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
-from d3lvo_deploy.points import SolverFrame, point_config, solver_feeds
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT, SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import D3LVOConfig
@@ -125,7 +125,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     geometric = ort_model.geometric
     points = point_config(ort_model.config) if ort_model.point_solver else None
     levels = len(ort_model.config["pt_iters"]) if "stack2_p0" in ort_model.input_names("flowpose") else 0
-    depth_P = seq.calib.P_velo_to_image2 if "scan_depth2" in ort_model.input_names("flowpose") else None
+    depth_P = seq.calib.P_velo_to_image2 if SCAN_DEPTH_INPUT in ort_model.input_names("flowpose") else None
     solver_prev = None
     for i in range(n):
         rgb = pre.rgb_input(seq.image(i))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from torch import nn
 
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT
 from models.d3lvo import D3LVO
 from models.point_solver import pyramid_input_names
 
@@ -23,13 +24,11 @@ CAMERA_INPUTS = ("intrinsics", "init_pose")
 # (frame t-1's grey, frame t's grey and derivatives; heights and widths dynamic; their names from
 # `point_solver.pyramid_input_names`), frame t-1's LiDAR point list with its mask, image_2's intrinsics
 SOLVER_INPUTS = ("points1", "point_mask1", "image_intrinsics")
-# with pt_restart_depth, frame t's LiDAR depth at the camera's resolution (metres, 0 where none)
-DEPTH_INPUT = "scan_depth2"
 
 
 def solver_input_names(model: D3LVO) -> list[str]:
     grey1, stack2 = pyramid_input_names(len(model.cfg.pt_iters))
-    return grey1 + stack2 + list(SOLVER_INPUTS) + ([DEPTH_INPUT] if model.cfg.checks_restart_on_scan else [])
+    return grey1 + stack2 + list(SOLVER_INPUTS) + ([SCAN_DEPTH_INPUT] if model.cfg.checks_restart_on_scan else [])
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:

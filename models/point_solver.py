@@ -314,9 +314,8 @@ def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask,
     coarse_to_fine, restart = A[:, 0].flatten(0, 1), A[:, 1].flatten(0, 1)
     better = consensus_gain(restart, coarse_to_fine, grey1, stack, points, weight, K) > s.fine_restart
     if s.restart_depth > 0 and depth2 is not None:
-        trusted = (weight >= 0.5).to(points.dtype)
-        errors = lidar_depth_error(A.flatten(0, 2), two(points, points), two(trusted, trusted), depth2, two(K, K))
-        errors = errors.reshape(-1, 2, k)
+        # on the doubled rows the solve ran on: X, K2, w are points, K, weight twice
+        errors = lidar_depth_error(A.flatten(0, 2), X, (w >= 0.5).to(X.dtype), depth2, K2).reshape(-1, 2, k)
         better = better | (errors[:, 1] < s.restart_depth * errors[:, 0]).flatten()
     return torch.where(better[:, None, None], restart, coarse_to_fine)
 

@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+
 from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
@@ -166,7 +168,7 @@ class PointPose(nn.Module):
             # batch rows 2i and 2i + 1 are pair i's two solves, which share its images (no copy)
             two = lambda x: interleave(x, x)  # noqa: E731
             both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
-                         self.settings, mask=two(mask), depth2=solver.get("scan_depth2"))
+                         self.settings, mask=two(mask), depth2=solver.get(SCAN_DEPTH_INPUT))
             levels, classical = [L[0::2] for L in both], both[-1][1::2]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)
             # the next pair starts from the weighted pose, whichever is kept: started from a
@@ -186,7 +188,7 @@ class PointPose(nn.Module):
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:
             levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask,
-                           depth2=solver.get("scan_depth2"))
+                           depth2=solver.get(SCAN_DEPTH_INPUT))
         out["point_weights"] = weight
         out["level_matrices"] = levels
         return out

@@ -170,7 +170,7 @@ MUTATIONS = [
              'stop_step=model_config["pt_stop"]', 'stop_step=model_config["pt_damping"]',
              ("tests/test_point_solver.py::test_direct_method_is_the_models_classical_mode",)),
     Mutation("the runtime feeds frame t-1's scan to the restart's check", "d3lvo_deploy/points.py",
-             'feeds["scan_depth2"] = cur.depth[None, None]', 'feeds["scan_depth2"] = prev.depth[None, None]',
+             'feeds[SCAN_DEPTH_INPUT] = cur.depth[None, None]', 'feeds[SCAN_DEPTH_INPUT] = prev.depth[None, None]',
              ("tests/test_point_solver.py::test_runtime_feeds_frame_ts_own_scan",)),
     Mutation("the classical mode keeps the restart where it fits frame t's scan worse", "d3lvo_deploy/direct.py",
              "            < cfg.restart_depth * lidar_depth_error(", "            > cfg.restart_depth * lidar_depth_error(",
