@@ -28,8 +28,8 @@ def train_command(
     data: list[Path] = typer.Option([], "--data", help="Training sequence folder (repeat for several)."),
     out: Path | None = typer.Option(None, "--out", help="Checkpoint path (written atomically every --ckpt-every "
                                     "steps; the resolved config is written beside it as OUT.toml)."),
-    config: Path | None = typer.Option(None, "--config", help="TOML with [model] (preset and any width, level or "
-                                       "solver field), [train], [loss], [augment]; command-line options win "
+    config: Path | None = typer.Option(None, "--config", help="TOML with \\[model] (preset and any width, level or "
+                                       "solver field), \\[train], \\[loss], \\[augment]; command-line options win "
                                        "(docs/training.md)."),
     val: list[Path] = typer.Option([], "--val", help="Validation sequence folder (repeatable)."),
     steps: int = typer.Option(1000, "--steps", help="Optimizer steps in all (a resumed run counts from where it was)."),

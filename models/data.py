@@ -76,6 +76,11 @@ def pose_vector(A: np.ndarray) -> np.ndarray:
     return np.concatenate([A[:3, 3], rot_to_quat(A[:3, :3])]).astype(np.float32)
 
 
+def mask_or_unknown(mask: np.ndarray | None, like: np.ndarray) -> np.ndarray:
+    """(1,h,w) float32 of a 0/1 mask; -1 everywhere where there is none (nobody knows)."""
+    return (mask if mask is not None else np.full(like.shape[1:], -1.0)).astype(np.float32)[None]
+
+
 class FrameLoader:
     """Reads one frame of a sequence at the network resolution, through the runtime's preprocessor."""
 
@@ -160,6 +165,16 @@ class FrameLoader:
         """1 on pixels of things that move on their own; None where nobody knows (real KITTI). A
         synthetic drive rendered without traffic has no motion_2/: nothing in it moves."""
         m = self._png("motion_2", i)
+        if m is None:
+            return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
+        return self.view.apply_depth((m > 0).astype(np.float32))
+
+    def shadow_mask(self, i: int) -> np.ndarray | None:
+        """1 where a surface that stays put changes its shading by frame i+1 because a moving
+        vehicle's shadow moves over it (shadow_2/): its appearance moves with the vehicle, so the
+        solver must not trust it either. None where nobody knows (real KITTI, drives rendered
+        before shadow_2/ was written)."""
+        m = self._png("shadow_2", i)
         if m is None:
             return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
         return self.view.apply_depth((m > 0).astype(np.float32))
@@ -253,10 +268,10 @@ class PairDataset(Dataset):
                 rigid_depth = sparse_depth(scan, L.pre.P, self.cfg.width, self.cfg.height) if out.any() else gts[0]
         gts.append(rigid_depth)
         target = L.flow_target_map(i - 1)  # (3,h,w) or None
-        moving = L.motion_mask(i - 1)
+        moving, shadow = L.motion_mask(i - 1), L.shadow_mask(i - 1)
         maps = [] if target is None else [target[0], target[1], target[2]]
-        if moving is not None:
-            maps.append(moving)
+        masks = [m for m in (moving, shadow) if m is not None]
+        maps += masks  # moving, then shadow: both at the end of maps
         A = self.relative_pose(k, i)
         A0 = self.relative_pose(k, i - 1) if i >= 2 else np.eye(4)
         if self.augment is not None and rng.uniform() < self.augment.cold_start:
@@ -306,6 +321,8 @@ class PairDataset(Dataset):
             "pose": t(pose_vector(A)), "matrix": t(A.astype(np.float32)), "init": t(A0.astype(np.float32)),
             "K": t(np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)),
             "flow": t(flow), "flow_valid": t(valid),
-            # 1 on moving vehicles, 0 elsewhere, -1 where the sequence has no motion masks
-            "moving": t((maps[-1] if moving is not None else np.full(flow.shape[1:], -1.0)).astype(np.float32))[None],
+            # 1 on moving vehicles, 0 elsewhere, -1 where the sequence has no motion masks; the same
+            # for moving shadows on surfaces that stay put (`shadow_mask`)
+            "moving": t(mask_or_unknown(maps[len(maps) - len(masks)] if moving is not None else None, flow)),
+            "shadow": t(mask_or_unknown(maps[-1] if shadow is not None else None, flow)),
         }

@@ -160,14 +160,17 @@ def completion_loss(out: dict, batch: dict, device) -> torch.Tensor:
     return per_pair_mean((pred - gt).abs(), (gt > 0) & (gt < 80))
 
 
-def motion_loss(out: dict, batch: dict, device) -> torch.Tensor:
+def motion_loss(out: dict, batch: dict, device, shadows: bool = False) -> torch.Tensor:
     """BCE of the 'moves on its own' logits against the share of moving pixels in each cell's
-    window, on samples that have motion masks (synthetic drives)."""
+    window, on samples that have motion masks (synthetic drives); with `shadows`, moving shadows
+    count as moving where the sample has them (`LossConfig.moving_shadows`)."""
     if "moving_logits" not in out:
         return torch.zeros((), device=device)
     logits = out["moving_logits"]
     moving = batch["moving"].to(device)
     known = (moving.flatten(1).amin(1) >= 0).view(-1, 1, 1, 1)
+    if shadows and "shadow" in batch:
+        moving = torch.maximum(moving, batch["shadow"].to(device))  # -1 (unknown) leaves moving as it is
     target = cell_pool(moving.clamp(min=0), moving.shape[-1] // logits.shape[-1])
     bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
     return per_pair_mean(bce, known)
@@ -223,7 +226,8 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
     flow EPE per level against predicting zero flow, rotation error (deg) against predicting no
     rotation, translation error (m) against predicting no motion; on sequences with motion masks
     (`d3lvo synth --traffic`), per level the AUROC of low confidence for cells on moving vehicles
-    (0.5 is what a uniform confidence scores)."""
+    and, where the drive has shadow_2/, for cells of moving shadows against cells that neither
+    move nor are shaded by a mover (0.5 is what a uniform confidence scores)."""
     model.eval()
     data = PairDataset(seqs, model.cfg, augment=None)
     idx = np.linspace(0, len(data) - 1, min(pairs, len(data))).round().astype(int)
@@ -231,6 +235,8 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
     acc: dict[str, list[float]] = {}
     conf_scores: dict[int, list[np.ndarray]] = {}
     conf_labels: dict[int, list[np.ndarray]] = {}
+    shadow_scores: dict[int, list[np.ndarray]] = {}
+    shadow_labels: dict[int, list[np.ndarray]] = {}
     for i in idx:
         b = {k: v[None] for k, v in data[int(i)].items()}
         solver = {k: v.to(dev) for k, v in data.solver_inputs(int(i)).items()} if model.cfg.point_solver else None
@@ -239,9 +245,15 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
         if float(b["moving"].min()) >= 0 and "confidence" in out:
             levels = (model.cfg.flow_levels[-1],) if model.cfg.point_solver else model.cfg.gn_levels
             for lvl, c in zip(levels, out["confidence"]):
-                moving = cell_pool(b["moving"], b["moving"].shape[-1] // c.shape[-1]) > 0.5  # as the flow targets
+                s = b["moving"].shape[-1] // c.shape[-1]
+                moving = cell_pool(b["moving"], s) > 0.5  # as the flow targets
                 conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
                 conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
+                if float(b["shadow"].min()) >= 0:  # moving shadows against what neither moves nor is shaded
+                    shadow = (cell_pool(b["shadow"], s) > 0.5) & ~moving
+                    keep = (shadow | (cell_pool(torch.maximum(b["moving"], b["shadow"]), s) == 0)).numpy().ravel()
+                    shadow_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel()[keep])
+                    shadow_labels.setdefault(lvl, []).append(shadow.numpy().ravel()[keep])
         for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
             acc.setdefault(f"flow_epe_l{lvl}", []).append(float(e))
             acc.setdefault(f"flow_epe_l{lvl}_zero", []).append(float(z))
@@ -255,6 +267,10 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
         a = auroc(np.concatenate(conf_scores[lvl]), np.concatenate(conf_labels[lvl]))
         if a is not None:
             res[f"moving_auroc_l{lvl}"] = a
+    for lvl in shadow_scores:
+        a = auroc(np.concatenate(shadow_scores[lvl]), np.concatenate(shadow_labels[lvl]))
+        if a is not None:
+            res[f"shadow_auroc_l{lvl}"] = a
     return res
 
 
@@ -416,7 +432,7 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
                     pose_loss, parts = torch.zeros((), device=device), {}
                 comp = completion_loss(out, b, device)
                 fl = flow_loss(out["flows"], b, device)
-                mv = motion_loss(out, b, device)
+                mv = motion_loss(out, b, device, tc.loss.moving_shadows)
                 loss = pose_loss + tc.loss.completion_weight * comp + tc.loss.flow_weight * fl + tc.loss.motion_weight * mv
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss became {float(loss)} at step {step}")

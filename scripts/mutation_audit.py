@@ -175,6 +175,13 @@ MUTATIONS = [
     Mutation("the classical mode keeps the restart where it fits frame t's scan worse", "d3lvo_deploy/direct.py",
              "            < cfg.restart_depth * lidar_depth_error(", "            > cfg.restart_depth * lidar_depth_error(",
              ("tests/test_point_solver.py::test_restart_depth_is_the_numpy_trackers",)),
+    Mutation("shadow_2 marks what a mover shades now, not where the shading changes", "d3lvo_deploy/synth/traffic.py",
+             "    out[sel] = now != then", "    out[sel] = now",
+             ("tests/test_traffic.py::test_moving_shadow_band_by_hand",
+              "tests/test_traffic.py::test_moving_shadows_change_the_image_where_shadow_2_says")),
+    Mutation("the confidence's target ignores moving shadows when asked to count them", "models/train.py",
+             "    if shadows and \"shadow\" in batch:", "    if False:",
+             ("tests/test_targets.py::test_motion_target_counts_moving_shadows_only_when_asked",)),
 ]
 
 

@@ -1,5 +1,6 @@
 """Training targets: true flow through the augmentations, held-out LiDAR returns for completion,
-flow targets centred on the encoder's cells, and the AUROC of the confidence against motion masks."""
+flow targets centred on the encoder's cells, moving shadows in the confidence's target, and the
+AUROC of the confidence against motion masks."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 from d3lvo_deploy.metrics import auroc
 from models.config import D3LVOConfig
 from models.data import AugmentConfig, PairDataset
-from models.train import level_flow_target
+from models.train import level_flow_target, motion_loss
 
 ROOT = Path(__file__).resolve().parents[1]
 NO_AUG = dict(flip=0.0, brightness=0.0, rotation_deg=0.0, cold_start=0.0, held_out_returns=0.0)
@@ -66,6 +67,8 @@ def test_true_flow_target_is_the_written_flow(traffic_clip, traffic_pairs):
     assert (s["flow_valid"][0].numpy() > 0).tolist() == valid.tolist()
     mask = cv2.imread(str(traffic_clip / "motion_2" / "000002.png"), cv2.IMREAD_UNCHANGED) > 0
     assert mask.sum() > 100 and (s["moving"][0].numpy() > 0.5).tolist() == mask.tolist()
+    shade = cv2.imread(str(traffic_clip / "shadow_2" / "000002.png"), cv2.IMREAD_UNCHANGED) > 0
+    assert shade.sum() > 20 and (s["shadow"][0].numpy() > 0.5).tolist() == shade.tolist()
 
 
 def test_true_flow_follows_flip_and_rotation(traffic_pairs):
@@ -78,6 +81,8 @@ def test_true_flow_follows_flip_and_rotation(traffic_pairs):
     f_ref, f_flip = ref["flow"].numpy(), flipped["flow"].numpy()[:, :, ::-1]
     ok = ref["flow_valid"][0].numpy() > 0
     assert np.abs(f_flip[0][ok] + f_ref[0][ok]).max() < 1e-4 and np.abs(f_flip[1][ok] - f_ref[1][ok]).max() < 1e-4
+    for mask in ("moving", "shadow"):  # the masks mirror with the images
+        assert ref[mask].sum() > 0 and torch.equal(flipped[mask].flip(-1), ref[mask])
 
     def warp_error(s) -> float:
         img1, img2 = s["rgb1"].numpy().transpose(1, 2, 0), s["rgb2"].numpy().transpose(1, 2, 0)
@@ -92,6 +97,20 @@ def test_true_flow_follows_flip_and_rotation(traffic_pairs):
     e_ref, e_rot = warp_error(ref), warp_error(rotated)
     print(f"75th-percentile warp error on vehicles: {e_ref:.4f} plain, {e_rot:.4f} rotated")
     assert e_rot < 1.5 * e_ref + 0.01
+
+
+def test_motion_target_counts_moving_shadows_only_when_asked():
+    """Two cells at stride 1, logit +2 on both: a cell whose target is 1 costs log(1 + e^-2), one
+    whose target is 0 log(1 + e^2).
+    A pixel in a moving shadow is target 0 without `shadows`, 1 with; an unknown shadow mask
+    (-1, real KITTI) leaves the vehicles' target as it is."""
+    out = {"moving_logits": torch.full((1, 1, 1, 2), 2.0)}
+    batch = {"moving": torch.tensor([[[[1.0, 0.0]]]]), "shadow": torch.tensor([[[[0.0, 1.0]]]])}
+    lo, hi = float(np.log1p(np.exp(-2.0))), float(np.log1p(np.exp(2.0)))
+    assert abs(float(motion_loss(out, batch, "cpu")) - (lo + hi) / 2) < 1e-6
+    assert abs(float(motion_loss(out, batch, "cpu", shadows=True)) - lo) < 1e-6
+    unknown = {**batch, "shadow": torch.full((1, 1, 1, 2), -1.0)}
+    assert abs(float(motion_loss(out, unknown, "cpu", shadows=True)) - (lo + hi) / 2) < 1e-6
 
 
 def test_completion_target_is_held_out_of_the_input():

@@ -17,7 +17,8 @@ pytest.importorskip("embreex")
 from d3lvo_deploy.synth.generator import (SynthConfig, decode_kitti_flow, encode_kitti_flow, generate,  # noqa: E402
                                           make_poses, make_scene)
 from d3lvo_deploy.synth.sensors import Exposure, LidarConfig, cam2_pose, render_camera, scan_lidar, velo_pose  # noqa: E402
-from d3lvo_deploy.synth.traffic import KINDS, plan_traffic  # noqa: E402
+from d3lvo_deploy.synth.traffic import KINDS, Vehicle, plan_traffic, shadow_change  # noqa: E402
+from d3lvo_deploy.synth.world import Mesh, add_box  # noqa: E402
 from d3lvo_deploy.synth.world import build_path  # noqa: E402
 
 SIZE = (416, 128)
@@ -41,7 +42,7 @@ def test_every_kind_of_vehicle_is_planned():
 
 
 def test_static_drive_writes_no_traffic_files(small_synth):
-    assert not (small_synth / "motion_2").exists() and not (small_synth / "flow_2").exists()
+    assert not any((small_synth / d).exists() for d in ("motion_2", "flow_2", "shadow_2"))
     assert "traffic" not in (small_synth / "synth.json").read_text()
 
 
@@ -100,6 +101,60 @@ def test_true_flow_is_rigid_on_static_pixels_and_moves_with_the_vehicles(traffic
     # a percentile, not the mean: pixels that are occluded in frame i+1 (thin roof edges, one vehicle
     # behind another) match with no flow, and their errors swamp a mean
     assert len(written) > 500 and np.percentile(written, 75) < 0.5 * np.percentile(rigid_e, 75)
+
+
+def test_moving_shadow_band_by_hand():
+    """A 2 x 4 m box 1 m above a plane, the sun straight overhead, moving 1 m along z between the
+    frames: the plane's shading changes exactly where one footprint covers it and the other does
+    not (z in [0, 1) and (4, 5] for x in [0, 2]); a parked box, or a pixel on the mover, changes nothing."""
+    mesh = Mesh()
+    add_box(mesh, np.array([1.0, -1.0, 2.0]), np.array([0.0, 0.0, 1.0]), (4.0, 2.0, 1.0), 0, (0.5, 0.5, 0.5))
+    step = np.eye(4)
+    step[2, 3] = 1.0
+    box = Vehicle("lead", mesh.arrays(), np.stack([np.eye(4), step]))
+    x, z = np.meshgrid(np.arange(-0.875, 3.0, 0.25), np.arange(-0.875, 6.0, 0.25))  # cell centres, no edge on a box face
+    hits = {"shadow_origin": np.stack([x.ravel(), np.full(x.size, -0.02), z.ravel()], 1), "lit": np.ones(x.size)}
+    sun = np.array([0.0, -1.0, 0.0])
+    still = np.zeros(x.shape, bool)
+    got = shadow_change(hits, still, [box], np.array([True]), sun, 0)
+    inside = (x > 0) & (x < 2)
+    assert (got == (inside & (((z > 0) & (z < 1)) | ((z > 4) & (z < 5))))).all() and got.sum() == 8 * 8  # 8 columns, 4 + 4 rows
+    assert not shadow_change(hits, still, [box], np.array([False]), sun, 0).any()  # parked: its shadow stays
+    assert not shadow_change(hits, np.ones(x.shape, bool), [box], np.array([True]), sun, 0).any()
+    assert not shadow_change({**hits, "lit": np.zeros(x.size)}, still, [box], np.array([True]), sun, 0).any()
+
+
+def test_moving_shadows_change_the_image_where_shadow_2_says(traffic_clip):
+    """Pixels shadow_2 marks, warped into the next frame by the camera's motion alone (depth_2,
+    poses, P2), change their brightness far more than the other static pixels: a moving shadow
+    moved over them. The check reads only the rendered images, not how shadow_2 was made."""
+    seq = KittiSequence.open(traffic_clip)
+    K, T02 = seq.calib.K2, seq.calib.T_cam0_cam2
+    v, u = np.mgrid[0:SIZE[1], 0:SIZE[0]].astype(np.float64)
+    marked, rest = [], []
+    for i in range(len(seq) - 1):
+        shade = cv2.imread(str(traffic_clip / "shadow_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
+        depth = cv2.imread(str(traffic_clip / "depth_2" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) / 256.0
+        A = np.linalg.inv(seq.ground_truth.poses[i + 1] @ T02) @ (seq.ground_truth.poses[i] @ T02)
+        X = np.stack([(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, depth], -1)
+        Y = X @ A[:3, :3].T + A[:3, 3]
+        z = np.maximum(Y[..., 2], 1e-3)
+        mu, mv = K[0, 0] * Y[..., 0] / z + K[0, 2], K[1, 1] * Y[..., 1] / z + K[1, 2]
+        g0 = cv2.imread(str(traffic_clip / "image_2" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+        g1 = cv2.imread(str(traffic_clip / "image_2" / f"{i + 1:06d}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+        warped = cv2.remap(g1, mu.astype(np.float32), mv.astype(np.float32), cv2.INTER_LINEAR)
+        # in view in both frames, away from depth edges (where a warp by the camera alone is wrong anyway)
+        ok = (depth > 0) & (Y[..., 2] > 0.5) & (mu >= 1) & (mu <= SIZE[0] - 2) & (mv >= 1) & (mv <= SIZE[1] - 2)
+        ok &= cv2.erode((~_mask(traffic_clip, i)).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        ok &= np.abs(cv2.Laplacian(depth.astype(np.float32), cv2.CV_32F)) < 0.05 * np.maximum(depth, 1.0)
+        change = np.abs(warped - g0)
+        marked.append(change[ok & shade])
+        rest.append(change[ok & ~shade])
+    m, r = np.concatenate(marked), np.concatenate(rest)
+    print(f"{len(m)} marked pixels: median brightness change {np.median(m):.1f}; other static pixels "
+          f"({len(r)}): {np.median(r):.1f}")
+    assert len(m) > 50
+    assert np.median(m) > 4 * np.median(r)
 
 
 def test_kitti_flow_format_by_hand():

@@ -3,9 +3,11 @@
 Output: image_2/*.png, velodyne/*.bin, calib.txt, times.txt, poses.txt (cam0, first pose identity)
 and depth_2/*.png, the renderer's z-buffer as KITTI depth-completion PNGs (uint16, metres * 256,
 0 = sky), usable as dense ground truth. With traffic, also motion_2/*.png (255 where a pixel
-sees a vehicle that moves between this frame and the next) and flow_2/*.png, the true optical
+sees a vehicle that moves between this frame and the next), flow_2/*.png, the true optical
 flow of image_2 from each frame to the next (ego motion and vehicle motion), in KITTI's flow
-format (uint16 u, v as 64 x flow + 2^15, and a valid flag; none for the last frame). Each frame is written as soon as it is rendered and is a
+format (uint16 u, v as 64 x flow + 2^15, and a valid flag; none for the last frame), and
+shadow_2/*.png (255 where a surface that stays put changes its shading by the next frame because a
+moving vehicle's shadow moves over it; none for the last frame). Each frame is written as soon as it is rendered and is a
 pure function of (seed, frame), so an interrupted run resumes where it stopped with identical data.
 """
 
@@ -26,7 +28,7 @@ from .motion import DriveConfig, replay_gt, synthetic_drive
 from .raycast import RayCaster
 from .sensors import Exposure, LidarConfig, Scene, cam2_pose, render_camera, scan_lidar, velo_pose
 from .shading import noise_texture
-from .traffic import Vehicle, plan_traffic, point_motion, world_at
+from .traffic import Vehicle, plan_traffic, point_motion, shadow_change, world_at
 from .world import build_path, build_world
 
 GENERATOR_VERSION = 1
@@ -101,7 +103,7 @@ def _frame_done(out: Path, name: str, cfg: SynthConfig, last: bool) -> bool:
     if cfg.write_depth:
         files.append(out / "depth_2" / f"{name}.png")
     if cfg.traffic:
-        files += [out / "motion_2" / f"{name}.png"] + ([] if last else [out / "flow_2" / f"{name}.png"])
+        files += [out / "motion_2" / f"{name}.png"] + ([] if last else [out / d / f"{name}.png" for d in ("flow_2", "shadow_2")])
     return all(f.is_file() and f.stat().st_size > 0 for f in files)
 
 
@@ -177,7 +179,7 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
         raise D3LVOInputError(None, f"--traffic must be 0 or more vehicles per 100 m, not {cfg.traffic}")
     try:
         for d in ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()) + \
-                (("motion_2", "flow_2") if cfg.traffic else ()):
+                (("motion_2", "flow_2", "shadow_2") if cfg.traffic else ()):
             (out / d).mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out, f"cannot create the output folder ({e.strerror})") from None
@@ -221,6 +223,8 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
                     flow, valid = true_flow(depth, pix_owner, vehicles, K, cam2_pose(poses[i], calib),
                                             cam2_pose(poses[i + 1], calib), i)
                     _write_atomic(out / "flow_2" / f"{name}.png", _png(encode_kitti_flow(flow, valid)))
+                    shade = shadow_change(hits, moving[pix_owner], vehicles, moving[:-1], scene.sun, i)
+                    _write_atomic(out / "shadow_2" / f"{name}.png", _png(np.where(shade, 255, 0).astype(np.uint8)))
             _write_atomic(out / "velodyne" / f"{name}.bin", scan.tobytes())
             if cfg.write_depth:
                 d16 = np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)

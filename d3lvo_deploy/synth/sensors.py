@@ -69,7 +69,9 @@ def render_camera(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: i
                   rng: np.random.Generator, noise_sigma: float = 2.0, exposure: Exposure | None = None,
                   hits: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(H,W,3) uint8 RGB image and (H,W) float32 z-depth (0 where the ray saw sky). `hits`, when
-    given, receives each pixel's triangle ("prim", -1 for sky)."""
+    given, receives each pixel's triangle ("prim", -1 for sky) and, for `traffic.shadow_change`,
+    where its shadow ray starts ("shadow_origin", (H*W,3) world, NaN for sky) and how much sun its
+    surface faces ("lit", (H*W,), 0 where a shadow cannot change its shading)."""
     jj, ii = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     d_cam = np.stack([(jj - K[0, 2]) / K[0, 0], (ii - K[1, 2]) / K[1, 1], np.ones_like(jj)], -1).reshape(-1, 3)
     R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
@@ -95,6 +97,10 @@ def render_camera(scene: Scene, K: np.ndarray, T_world_cam: np.ndarray, width: i
         img = img + rng.normal(0.0, 1.0, img.shape) * sigma
     if hits is not None:
         hits["prim"] = h.prim.reshape(height, width)
+        hits["shadow_origin"] = np.full((width * height, 3), np.nan)
+        hits["shadow_origin"][ok] = pts + n * 0.02
+        hits["lit"] = np.zeros(width * height)
+        hits["lit"][ok] = lit
     depth = np.where(ok, h.t, 0.0).astype(np.float32).reshape(height, width)
     return np.clip(img, 0, 255).astype(np.uint8).reshape(height, width, 3), depth
 

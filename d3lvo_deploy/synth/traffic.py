@@ -136,3 +136,35 @@ def point_motion(vehicles: list[Vehicle], owner: np.ndarray, points: np.ndarray,
             M = v.poses[to_frame] @ np.linalg.inv(v.poses[frame])
             out[sel] = out[sel] @ M[:3, :3].T + M[:3, 3]
     return out
+
+
+def movers_mesh(vehicles: list[Vehicle], moving: np.ndarray, frame: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces of the vehicles flagged in `moving`, at `frame`."""
+    verts, faces, base = [np.zeros((0, 3), np.float32)], [np.zeros((0, 3), np.int64)], 0
+    for v, m in zip(vehicles, moving):
+        if m:
+            T = v.poses[frame]
+            verts.append((v.mesh["vertices"].astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32))
+            faces.append(v.mesh["faces"] + base)
+            base += len(v.mesh["vertices"])
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def shadow_change(hits: dict, pixel_moves: np.ndarray, vehicles: list[Vehicle], moving: np.ndarray,
+                  sun: np.ndarray, frame: int) -> np.ndarray:
+    """(H,W) True where a surface that stays put changes its shading between `frame` and the next
+    because a moving vehicle's shadow moves over it. Such a pixel moves in the image with the vehicle,
+    not with the camera, though no geometry there moves: the solver must not trust it either.
+    `hits`: `sensors.render_camera`'s for `frame`; pixel_moves (H,W): the pixel sees a moving vehicle."""
+    from .raycast import RayCaster
+
+    shape = pixel_moves.shape
+    out = np.zeros(shape[0] * shape[1], bool)
+    sel = np.isfinite(hits["shadow_origin"][:, 0]) & (hits["lit"] > 0) & ~pixel_moves.reshape(-1)
+    if not sel.any() or not np.any(moving):
+        return out.reshape(shape)
+    origins = hits["shadow_origin"][sel]
+    rays = np.ascontiguousarray(np.broadcast_to(sun, origins.shape))
+    now, then = (RayCaster(*movers_mesh(vehicles, moving, f)).occluded(origins, rays) for f in (frame, frame + 1))
+    out[sel] = now != then
+    return out.reshape(shape)
