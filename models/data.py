@@ -172,8 +172,8 @@ class FrameLoader:
     def shadow_mask(self, i: int) -> np.ndarray | None:
         """1 where a surface that stays put changes its shading by frame i+1 because a moving
         vehicle's shadow moves over it (shadow_2/): its appearance moves with the vehicle, so the
-        solver must not trust it either. None where nobody knows (real KITTI, drives rendered
-        before shadow_2/ was written)."""
+        solver must not trust it either. None where nobody knows (real KITTI, synthetic drives
+        without shadow_2/)."""
         m = self._png("shadow_2", i)
         if m is None:
             return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None

@@ -31,8 +31,7 @@ class LossConfig:
     # the target also counts as moving the pixels of surfaces that stay put where a moving
     # vehicle's shadow changes the shading by the next frame (`d3lvo synth` writes shadow_2/ with
     # traffic): they move in the image with the vehicle and pull the pose the same way. Off by
-    # default, so that the stages of scripts/train_default.sh trained before shadow_2/ existed
-    # repeat exactly on drives rendered now
+    # default, so that the bundled model's training stages (scripts/train_default.sh) repeat exactly
     moving_shadows: bool = False
     # the point head: eq. 11 on the solver's own poses, backpropagated through the Gauss-Newton
     # steps into the confidence, so that it learns which points help the pose, not only which move;

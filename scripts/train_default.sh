@@ -75,7 +75,12 @@ OMP_NUM_THREADS=2 "$D3LVO" train "${train[@]}" "${val[@]}" --out "$OUT/default.p
 # thread, ~1.2 s per step; validated on a traffic drive of its own (val_traffic).
 INIT=${INIT:-checkpoints/default_step2500.pt}
 S=(--size "$SIZE" --sensor-effects)
-drive() { [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" "${S[@]}"; }
+# (a traffic drive without shadow_2/ is rendered again: synth resumes, adds it, and writes every
+# other file byte for byte as before)
+drive() {
+  [ -f "$OUT/data/$1/poses.txt" ] && { [[ " ${*:2} " != *" --traffic "* ]] || [ -d "$OUT/data/$1/shadow_2" ]; } && return
+  "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" "${S[@]}"
+}
 # a static drive of 200 frames, no sensor effects: static_drive NAME SEED KITTI_SEQ START
 static_drive() {
   [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" --frames 200 --seed "$2" --size "$SIZE" \
@@ -382,9 +387,8 @@ for s in traffic_320 traffic_321 traffic_322 traffic_323; do
   "$D3LVO" run "$OUT/data/$s" --method direct --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 # moving shadows (shadow_2/) in the confidence's target, measured, not shipped (docs/model-card.md).
-# Traffic drives rendered before `d3lvo synth` wrote shadow_2/ get it by running their own synth
-# command again (every other file comes out byte for byte the same). First the classical mode with
-# an oracle's points dropped: those on movers, then also those in moving shadows
+# First the classical mode with an oracle's points dropped: those on movers, then also those in
+# moving shadows
 for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_traffic_612 val_traffic_613 traffic_311 \
          traffic_315 traffic_317 traffic_319; do
   .venv/bin/python scripts/masked_tracker.py "$OUT/data/$s" "$OUT/eval/movers_dropped_$s.txt"

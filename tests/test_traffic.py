@@ -17,6 +17,7 @@ pytest.importorskip("embreex")
 from d3lvo_deploy.synth.generator import (SynthConfig, decode_kitti_flow, encode_kitti_flow, generate,  # noqa: E402
                                           make_poses, make_scene)
 from d3lvo_deploy.synth.sensors import Exposure, LidarConfig, cam2_pose, render_camera, scan_lidar, velo_pose  # noqa: E402
+from d3lvo_deploy.synth.raycast import RayCaster  # noqa: E402
 from d3lvo_deploy.synth.traffic import KINDS, Vehicle, plan_traffic, shadow_change  # noqa: E402
 from d3lvo_deploy.synth.world import Mesh, add_box  # noqa: E402
 from d3lvo_deploy.synth.world import build_path  # noqa: E402
@@ -120,8 +121,18 @@ def test_moving_shadow_band_by_hand():
     inside = (x > 0) & (x < 2)
     assert (got == (inside & (((z > 0) & (z < 1)) | ((z > 4) & (z < 5))))).all() and got.sum() == 8 * 8  # 8 columns, 4 + 4 rows
     assert not shadow_change(hits, still, [box], np.array([False]), sun, 0).any()  # parked: its shadow stays
+    # a static roof 3 m up over z in [4, 6] keeps the far band dark in both frames: only z in [0, 1) changes
+    roof = Mesh()
+    add_box(roof, np.array([1.0, -3.0, 5.0]), np.array([0.0, 0.0, 1.0]), (2.0, 2.0, 0.2), 0, (0.5, 0.5, 0.5))
+    shaded = shadow_change(hits, still, [box], np.array([True]), sun, 0, RayCaster(*_faces(roof)))
+    assert (shaded == (inside & (z > 0) & (z < 1))).all()
     assert not shadow_change(hits, np.ones(x.shape, bool), [box], np.array([True]), sun, 0).any()
     assert not shadow_change({**hits, "lit": np.zeros(x.size)}, still, [box], np.array([True]), sun, 0).any()
+
+
+def _faces(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    a = mesh.arrays()
+    return a["vertices"], a["faces"]
 
 
 def test_moving_shadows_change_the_image_where_shadow_2_says(traffic_clip):

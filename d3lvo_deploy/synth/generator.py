@@ -223,7 +223,7 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
                     flow, valid = true_flow(depth, pix_owner, vehicles, K, cam2_pose(poses[i], calib),
                                             cam2_pose(poses[i + 1], calib), i)
                     _write_atomic(out / "flow_2" / f"{name}.png", _png(encode_kitti_flow(flow, valid)))
-                    shade = shadow_change(hits, moving[pix_owner], vehicles, moving[:-1], scene.sun, i)
+                    shade = shadow_change(hits, moving[pix_owner], vehicles, moving[:-1], scene.sun, i, scene.caster)
                     _write_atomic(out / "shadow_2" / f"{name}.png", _png(np.where(shade, 255, 0).astype(np.uint8)))
             _write_atomic(out / "velodyne" / f"{name}.bin", scan.tobytes())
             if cfg.write_depth:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .raycast import RayCaster
 from .world import CAR, GLASS, Mesh, Path2D, StreetStyle, add_box
 
 KINDS = ("lead", "overtaking", "overtaken", "oncoming", "crossing")
@@ -151,20 +152,24 @@ def movers_mesh(vehicles: list[Vehicle], moving: np.ndarray, frame: int) -> tupl
 
 
 def shadow_change(hits: dict, pixel_moves: np.ndarray, vehicles: list[Vehicle], moving: np.ndarray,
-                  sun: np.ndarray, frame: int) -> np.ndarray:
+                  sun: np.ndarray, frame: int, static: RayCaster | None = None) -> np.ndarray:
     """(H,W) True where a surface that stays put changes its shading between `frame` and the next
     because a moving vehicle's shadow moves over it. Such a pixel moves in the image with the vehicle,
     not with the camera, though no geometry there moves: the solver must not trust it either.
-    `hits`: `sensors.render_camera`'s for `frame`; pixel_moves (H,W): the pixel sees a moving vehicle."""
-    from .raycast import RayCaster
-
+    `hits`: `sensors.render_camera`'s for `frame`; pixel_moves (H,W): the pixel sees a moving vehicle;
+    `static`: the world without vehicles, whose shadow (like a vehicle's that stands still) keeps
+    a surface dark whatever passes between it and the sun."""
     shape = pixel_moves.shape
     out = np.zeros(shape[0] * shape[1], bool)
     sel = np.isfinite(hits["shadow_origin"][:, 0]) & (hits["lit"] > 0) & ~pixel_moves.reshape(-1)
     if not sel.any() or not np.any(moving):
         return out.reshape(shape)
+    rays = np.ascontiguousarray(np.broadcast_to(sun, (int(sel.sum()), 3)))
+    standing = [RayCaster(*movers_mesh(vehicles, ~np.asarray(moving, bool), frame))] if not np.all(moving) else []
+    for caster in ([static] if static is not None else []) + standing:
+        sel[sel] = ~caster.occluded(hits["shadow_origin"][sel], rays)
+        rays = rays[: int(sel.sum())]
     origins = hits["shadow_origin"][sel]
-    rays = np.ascontiguousarray(np.broadcast_to(sun, origins.shape))
     now, then = (RayCaster(*movers_mesh(vehicles, moving, f)).occluded(origins, rays) for f in (frame, frame + 1))
     out[sel] = now != then
     return out.reshape(shape)
