@@ -169,6 +169,8 @@ def shadow_change(hits: dict, pixel_moves: np.ndarray, vehicles: list[Vehicle], 
     for caster in ([static] if static is not None else []) + standing:
         sel[sel] = ~caster.occluded(hits["shadow_origin"][sel], rays)
         rays = rays[: int(sel.sum())]
+    if not sel.any():
+        return out.reshape(shape)
     origins = hits["shadow_origin"][sel]
     now, then = (RayCaster(*movers_mesh(vehicles, moving, f)).occluded(origins, rays) for f in (frame, frame + 1))
     out[sel] = now != then
