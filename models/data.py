@@ -164,17 +164,18 @@ class FrameLoader:
     def motion_mask(self, i: int) -> np.ndarray | None:
         """1 on pixels of things that move on their own; None where nobody knows (real KITTI). A
         synthetic drive rendered without traffic has no motion_2/: nothing in it moves."""
-        m = self._png("motion_2", i)
-        if m is None:
-            return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
-        return self.view.apply_depth((m > 0).astype(np.float32))
+        return self._mask("motion_2", i)
 
     def shadow_mask(self, i: int) -> np.ndarray | None:
         """1 where a surface that stays put changes its shading by frame i+1 because a moving
         vehicle's shadow moves over it (shadow_2/): its appearance moves with the vehicle, so the
         solver must not trust it either. None where nobody knows (real KITTI, synthetic drives
         without shadow_2/)."""
-        m = self._png("shadow_2", i)
+        return self._mask("shadow_2", i)
+
+    def _mask(self, folder: str, i: int) -> np.ndarray | None:
+        """A 0/1 mask of `folder` at the network view; zeros for a drive where nothing moves."""
+        m = self._png(folder, i)
         if m is None:
             return np.zeros((self.cfg.height, self.cfg.width), np.float32) if self.static_synthetic else None
         return self.view.apply_depth((m > 0).astype(np.float32))

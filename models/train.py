@@ -247,12 +247,13 @@ def pair_metrics(model: D3LVO, seqs: list[str], pairs: int = 24) -> dict:
             for lvl, c in zip(levels, out["confidence"]):
                 s = b["moving"].shape[-1] // c.shape[-1]
                 moving = cell_pool(b["moving"], s) > 0.5  # as the flow targets
-                conf_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel())
+                score = -c.cpu().numpy().ravel()
+                conf_scores.setdefault(lvl, []).append(score)
                 conf_labels.setdefault(lvl, []).append(moving.numpy().ravel())
                 if float(b["shadow"].min()) >= 0:  # moving shadows against what neither moves nor is shaded
                     shadow = (cell_pool(b["shadow"], s) > 0.5) & ~moving
                     keep = (shadow | (cell_pool(torch.maximum(b["moving"], b["shadow"]), s) == 0)).numpy().ravel()
-                    shadow_scores.setdefault(lvl, []).append(-c.cpu().numpy().ravel()[keep])
+                    shadow_scores.setdefault(lvl, []).append(score[keep])
                     shadow_labels.setdefault(lvl, []).append(shadow.numpy().ravel()[keep])
         for lvl, (e, z) in zip(model.cfg.flow_levels, flow_errors(out["flows"], b, dev)):
             acc.setdefault(f"flow_epe_l{lvl}", []).append(float(e))

@@ -40,17 +40,20 @@ def untrusted(drive: Path, i: int, shadows: bool) -> np.ndarray:
     return (mask > 0) | (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0)
 
 
+def without(f: TrackedFrame, bad: np.ndarray) -> TrackedFrame:
+    """The frame with its points on the pixels `bad` (H,W) marks dropped (nearest pixel)."""
+    uv = np.rint(project(f.points, f.levels[0].K)[0]).astype(int)
+    uv = np.clip(uv, 0, [bad.shape[1] - 1, bad.shape[0] - 1])
+    return TrackedFrame(f.levels, f.points[~bad[uv[:, 1], uv[:, 0]]], f.depth)
+
+
 def main(drive: Path, out: Path, shadows: bool) -> None:
     seq = KittiSequence.open(drive)
     odo = DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]))
     frame = odo._frame
 
     def masked(image: np.ndarray, points: np.ndarray) -> TrackedFrame:
-        f = frame(image, points)
-        bad = untrusted(drive, odo.frames, shadows)
-        uv = np.rint(project(f.points, f.levels[0].K)[0]).astype(int)
-        uv = np.clip(uv, 0, [bad.shape[1] - 1, bad.shape[0] - 1])
-        return TrackedFrame(f.levels, f.points[~bad[uv[:, 1], uv[:, 0]]], f.depth)
+        return without(frame(image, points), untrusted(drive, odo.frames, shadows))
 
     odo._frame = masked
     write_poses(out, np.array([odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))]))

@@ -31,10 +31,10 @@ from d3lvo_deploy.direct import (DirectConfig, DirectOdometry, TrackedFrame, con
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.odometry import clean_scan
-from d3lvo_deploy.points import project
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.projection import sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
+from masked_tracker import without  # scripts/ is on the path of a script run from it
 
 
 def lidar_depth(image: np.ndarray, scan: np.ndarray, calib) -> np.ndarray:
@@ -53,9 +53,7 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         moving = cv2.imread(f"{drive}/motion_2/{i:06d}.png", cv2.IMREAD_GRAYSCALE)
         if moving is None:
             sys.exit(f"{drive}/motion_2/{i:06d}.png: no motion mask (render the drive with --traffic)")
-        uv = np.rint(project(a.points, a.levels[0].K)[0]).astype(int)
-        uv = np.clip(uv, 0, [moving.shape[1] - 1, moving.shape[0] - 1])
-        a = TrackedFrame(a.levels, a.points[moving[uv[:, 1], uv[:, 0]] == 0])
+        a = without(a, moving > 0)
     G = read_poses(f"{drive}/poses.txt").poses
     truth = change_frame(relative(G[i], G[i + 1]), seq.calib.T_cam2_cam0)  # image_2 motion, frame i+1 in frame i
     short = truth.copy()
