@@ -47,6 +47,9 @@ class DirectConfig:
     # the Huber threshold from the residuals' median at every this-th step of a level, kept in
     # between: the median is a partial sort in the network's graph, its dearest node on OpenVINO
     scale_every: int = 3
+    # that median over the points in view whose place in the point list is a multiple of this
+    # (the network's `pt_median_stride`: its partial sort's time grows with the list)
+    median_stride: int = 1
     # after the finest level, up to this many more steps there (the network's `pt_refine`, whose
     # restored weights are all 1 here, so that its classical mode stays this tracker)
     refine: int = 0
@@ -87,6 +90,7 @@ class DirectConfig:
         iters = tuple(model_config["pt_iters"])
         return cls(levels=len(iters), iterations=iters, stop_step=model_config["pt_stop"],
                    damping=model_config["pt_damping"], scale_every=model_config.get("pt_scale_every", 1),
+                   median_stride=model_config.get("pt_median_stride", 1),
                    refine=model_config.get("pt_refine", 0), points=point_config(model_config),
                    affine_brightness=bool(model_config.get("pt_affine", False)),
                    fine_restart=float(model_config.get("pt_fine_restart", 0.0)),
@@ -128,6 +132,14 @@ def huber_threshold(r: np.ndarray) -> float:
     return max(HUBER_K * MAD_TO_SIGMA * float(np.median(np.abs(r))), 1e-6)
 
 
+def stride_threshold(r: np.ndarray, index: np.ndarray, stride: int) -> float:
+    """`huber_threshold` of the residuals r of the points at `index` in the point list, over those
+    whose index is a multiple of `stride`; with none of them, no threshold (every weight 1), as
+    the network's masked median of nothing."""
+    sample = r[index % stride == 0] if stride > 1 else r
+    return huber_threshold(sample) if len(sample) else np.inf
+
+
 def huber_weights(r: np.ndarray, k: float | None = None) -> np.ndarray:
     """Huber weights at threshold k, by default `huber_threshold(r)`."""
     a = np.abs(r)
@@ -166,7 +178,7 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
         cur = s[:, 0]
         r = cur - (affine_fit(ref[ok], cur, np.ones_like(cur)) if cfg.affine_brightness else ref[ok])
         if i % cfg.scale_every == 0:
-            k = huber_threshold(r)
+            k = stride_threshold(r, np.flatnonzero(ok), cfg.median_stride)
         if cfg.affine_brightness:
             r = cur - affine_fit(ref[ok], cur, huber_weights(r, k))
         # d residual / d point = grad . d pixel / d point; rotation part = X' x a (left perturbation)

@@ -150,9 +150,11 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
         batch = a.get("batch", 1)
         images = a.get("images", batch)
         affine = bool(a.get("affine", 0))
-        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images, affine)
+        stride = a.get("stride", 1)
+        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images, affine, stride)
         if key not in blocks:
-            s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"], affine=affine)
+            s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"], affine=affine,
+                               median_stride=stride)
             blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch, images)
         trips = a["trips"]
         prefix = f"gn_loop{loops}/"

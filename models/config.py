@@ -11,7 +11,7 @@ COMPLETIONS = ("learned", "ipbasic")
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
-               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every",
+               "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
                "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained")
 
 
@@ -79,6 +79,10 @@ class D3LVOConfig:
     # the Huber threshold is taken from the residuals' median at every this-th step of a level and
     # kept in between (the median is a partial sort, the dearest node of a step on OpenVINO)
     pt_scale_every: int = 3
+    # that median over every this-th point of the list only (points are in scan order, so the
+    # sample spreads over the view): the partial sort's time grows with its length, and a robust
+    # scale does not need every point (docs/performance.md)
+    pt_median_stride: int = 1
     # after the finest level, every point the solved pose explains (residual within the Huber
     # threshold) weighs fully again, and up to this many more steps are taken there: the confidence
     # is read before the pose is known, and on a static scene its doubts only reweight good points
@@ -182,6 +186,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
         if not (isinstance(self.pt_scale_every, int) and self.pt_scale_every >= 1):
             raise ValueError(f"pt_scale_every must be a whole number of steps, at least 1, not {self.pt_scale_every!r}")
+        if not (isinstance(self.pt_median_stride, int) and self.pt_median_stride >= 1):
+            raise ValueError(f"pt_median_stride must be a whole number of points, at least 1, not {self.pt_median_stride!r}")
         if not isinstance(self.pt_affine, bool):
             raise ValueError(f"pt_affine must be true or false, not {self.pt_affine!r}")
         if not (isinstance(self.pt_fine_restart, (int, float)) and 0 <= self.pt_fine_restart < 1):

@@ -63,6 +63,8 @@ class SolverSettings:
     # the forward step, the photometric costs can prefer a pose half a metre short; the scan of
     # frame t sees the step (docs/evaluation.md)
     restart_depth: float = 0.0
+    # the Huber threshold's median over every this-th point only (`huber_threshold`)
+    median_stride: int = 1
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -113,8 +115,11 @@ def masked_median(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.gather(v, -1, middle).mean(-1, keepdim=True)
 
 
-def huber_threshold(r: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """HUBER_K robust sigmas (1.4826 x the median |r|) of the residuals under mask: (..., 1)."""
+def huber_threshold(r: torch.Tensor, mask: torch.Tensor, stride: int = 1) -> torch.Tensor:
+    """HUBER_K robust sigmas (1.4826 x the median |r|) of the residuals under mask: (..., 1); with
+    `stride`, the median of every stride-th point's (a partial sort of N / stride)."""
+    if stride > 1:
+        r, mask = r[..., ::stride], mask[..., ::stride]
     return (HUBER_K * MAD_TO_SIGMA * masked_median(r.abs(), mask)).clamp(min=1e-6)
 
 
@@ -169,7 +174,7 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         cur = smp[:, :1]
         nr = (affine_fit(ref, cur, ok * weight) if s.affine else ref) - cur
         if i % s.scale_every == 0:
-            k = huber_threshold(nr, ok * median_mask)
+            k = huber_threshold(nr, ok * median_mask, s.median_stride)
         if s.affine:
             nr = affine_fit(ref, cur, ok * weight * huber_weights_at(nr, k)) - cur
         Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
@@ -207,6 +212,7 @@ class _GaussNewtonLoop(torch.autograd.Function):
         out = g.op(f"{LOOP_DOMAIN}::{LOOP_OP}", P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask,
                    half, last_cell, row_map, offsets,
                    trips_i=trips, block_i=s.scale_every, stop_f=s.stop_step, damping_f=s.damping, affine_i=int(s.affine),
+                   stride_i=s.median_stride,
                    capacity_i=capacity, batch_i=batch, images_i=images, outputs=2)
         for o, like in zip(out, (P, active)):
             o.setType(like.type())

@@ -82,7 +82,7 @@ class PointPose(nn.Module):
         self.moving = MovingLogits(2 + 1 + 3 + looks)
         self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every,
                                         cfg.pt_refine, cfg.pt_affine, cfg.pt_fine_restart,
-                                        cfg.pt_restart_depth)
+                                        cfg.pt_restart_depth, cfg.pt_median_stride)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                       invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,

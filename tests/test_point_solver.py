@@ -469,15 +469,18 @@ def _pair_11_12(cfg: DirectConfig):
     return seq, odo.motion2.copy(), odo._prev, odo._frame(seq.image(12), seq.scan(12))
 
 
-@pytest.mark.parametrize("scale_every, refine, affine", [(3, 0, False), (1, 0, False), (3, 5, False), (3, 0, True)])
-def test_confidence_one_is_the_numpy_tracker(scale_every, refine, affine):
+@pytest.mark.parametrize("scale_every, refine, affine, stride",
+                         [(3, 0, False, 1), (1, 0, False, 1), (3, 5, False, 1), (3, 0, True, 1), (3, 0, True, 4)])
+def test_confidence_one_is_the_numpy_tracker(scale_every, refine, affine, stride):
     """On a real frame pair, the solver with every confidence 1 gives the motion of
     `d3lvo run --method direct` (numpy, float64, its own loop with a break) within 1e-6 m, with
     the Huber threshold re-estimated every third step (the default) and at every step, with
-    the refinement after the finest level (which restores nothing when every weight is 1), and
-    with frame t's grey fitted as a ref + b at every step."""
+    the refinement after the finest level (which restores nothing when every weight is 1), with
+    frame t's grey fitted as a ref + b at every step, and with the threshold's median over every
+    fourth point of the list (the numpy tracker picks them by their place among the points in
+    view, the graph by a strided slice of the padded list)."""
     seq = _real_pair()
-    cfg = DirectConfig(scale_every=scale_every, refine=refine, affine_brightness=affine)
+    cfg = DirectConfig(scale_every=scale_every, refine=refine, affine_brightness=affine, median_stride=stride)
     odo = DirectOdometry(seq.calib, cfg)
     for i in (8, 9):
         odo.register_frame(seq.image(i), seq.scan(i))
@@ -486,9 +489,15 @@ def test_confidence_one_is_the_numpy_tracker(scale_every, refine, affine):
     pts, mask = pad_points(X, cfg.points.capacity)
     images = [_t(grey_image(seq.image(i)))[None, None] for i in (9, 10)]
     got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
-                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping, cfg.scale_every, refine, affine))[-1][0].numpy()
+                SolverSettings(cfg.iterations, cfg.stop_step, cfg.damping, cfg.scale_every, refine, affine,
+                               median_stride=stride))[-1][0].numpy()
     assert np.linalg.norm(want[:3, 3]) > 0.1  # the car moves
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
+    if stride > 1:  # the sampled median moves the motion by far more than the tolerance
+        every = DirectOdometry(seq.calib, replace(cfg, median_stride=1))
+        for i in (8, 9):
+            every.register_frame(seq.image(i), seq.scan(i))
+        assert np.abs(every.register_frame(seq.image(10), seq.scan(10))[:3, 3] - want[:3, 3]).max() > 1e-5
 
 
 def test_fine_restart_is_the_numpy_trackers():
@@ -804,8 +813,9 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
     TopK) at every pt_scale_every-th step of a level, so the fixture's (6, 6, 6) with the default
     3 (steps 0 and 3) gives 6 TopK nodes, and its finest-level restart two more (the two poses'
     robust scales in `consensus_gain`; the restart's steps run in the same batch); pt_iters=3,2
-    with pt_scale_every=1 and pt_fine_restart=0 gives 5; the point list is pt_capacity long. A
-    Loop's TopKs count once per trip it may take (its trip-count input)."""
+    with pt_scale_every=1 and pt_fine_restart=0 gives 5; the point list is pt_capacity long, and
+    with pt_median_stride=4 the steps' medians sort every fourth point (a TopK of 512 / 4 / 2 + 1).
+    A Loop's TopKs count once per trip it may take (its trip-count input)."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -821,16 +831,29 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
         points = next(i for i in g.input if i.name == "points1")
         return topks(g), points.type.tensor_type.shape.dim[1].dim_value
 
+    def loop_topk_lengths(folder):
+        """The k of every TopK in the Loops' steps: a median's partial sort of N // 2 + 1."""
+        ks = set()
+        for n in onnx.load(str(folder / "flowpose.onnx")).graph.node:
+            if n.op_type == "Loop":
+                body = n.attribute[0].g
+                consts = {c.output[0]: onnx.numpy_helper.to_array(c.attribute[0].t) for c in body.node
+                          if c.op_type == "Constant"}
+                ks |= {int(consts[t.input[1]][0]) for t in body.node if t.op_type == "TopK"}
+        return ks
+
     ck, default_dir = points_model
     assert topk_and_capacity(default_dir) == (6 + 2, 2048)
     r = CliRunner().invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_iters=3,2",
                                  "--set", "pt_capacity=512", "--set", "pt_stop=3e-5", "--set", "pt_scale_every=1",
-                                 "--set", "pt_fine_restart=0"])
+                                 "--set", "pt_fine_restart=0", "--set", "pt_median_stride=4"])
     assert r.exit_code == 0, r.output
     assert topk_and_capacity(tmp_path / "o") == (5, 512)
     m = load_manifest(tmp_path / "o")["model_config"]
     assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"], m["pt_scale_every"], m["pt_fine_restart"]) == \
         ([3, 2], 512, 3e-5, 1, 0.0)
+    assert loop_topk_lengths(default_dir) == {2048 // 2 + 1}
+    assert loop_topk_lengths(tmp_path / "o") == {512 // 4 // 2 + 1} and m["pt_median_stride"] == 4
 
 
 def test_no_points_no_motion_beyond_the_start():
