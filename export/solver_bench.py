@@ -8,7 +8,9 @@ onnxruntime's with elimination in place of Cramer's rule (what the Det op saves)
 it a textured image and 2,048 points in view, and times it with the engines taking turns. It
 prints the graph ops per block and the median and 10th-percentile time per block, and for
 onnxruntime the costliest node kinds from its profiler (which adds a few microseconds to every
-node). The bundled model's level runs up to five blocks.
+node) and OpenVINO's (its per-node counters). The bundled model's level runs up to five blocks.
+`--median-stride N` exports the blocks with `pt_median_stride` N (the Huber threshold's median
+over every N-th point: a partial sort of N times fewer values).
 """
 
 from __future__ import annotations
@@ -64,13 +66,13 @@ def block_feeds(height: int, width: int, points: int, batch: int = 2, seed: int 
     return feeds
 
 
-def export_block(layout: str, points: int, path: Path, batch: int = 2) -> int:
+def export_block(layout: str, points: int, path: Path, batch: int = 2, median_stride: int = 1) -> int:
     """One block in a `LAYOUTS` layout; returns its non-constant ops."""
     eliminate = mock.patch.object(point_solver, "cramer_solve", point_solver.scaled_solve)
     with sampling.gathered(layout != "gridsample"), warnings.catch_warnings(), \
             (eliminate if layout == "gather_gj" else contextlib.nullcontext()):
         warnings.simplefilter("ignore")
-        g = block_graph(SolverSettings(), points, 17, False, batch, images=1)
+        g = block_graph(SolverSettings(median_stride=median_stride), points, 17, False, batch, images=1)
     onnx.save(onnx.helper.make_model(g, opset_imports=[onnx.helper.make_opsetid("", 17)]), str(path))
     return sum(n.op_type != "Constant" for n in g.node)
 
@@ -107,6 +109,21 @@ def top_nodes(path: Path, feeds: dict, threads: int, runs: int = 100, top: int =
     return sorted(by.items(), key=lambda kv: -kv[1])[:top]
 
 
+def openvino_top_nodes(path: Path, feeds: dict, threads: int, runs: int = 100, top: int = 6) -> list[tuple[str, float]]:
+    """OpenVINO's per-node counters: microseconds per block by executed node kind, the costliest first."""
+    import openvino as ov
+
+    c = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads, "PERF_COUNT": "YES"})
+    r = c.create_infer_request()
+    fd = {i.get_any_name(): feeds[i.get_any_name()] for i in c.inputs}
+    by: dict[str, float] = collections.defaultdict(float)
+    for _ in range(runs):
+        r.infer(fd)
+        for p in r.profiling_info:
+            by[p.node_type] += p.real_time.total_seconds() * 1e6 / runs
+    return sorted(by.items(), key=lambda kv: -kv[1])[:top]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--height", type=int, default=176)
@@ -114,6 +131,7 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=2048)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=15, help="turns per engine and layout, 20 blocks each")
+    ap.add_argument("--median-stride", type=int, default=1, help="pt_median_stride of the exported blocks")
     a = ap.parse_args()
     feeds = block_feeds(a.height, a.width, a.points)
     cases = [("onnxruntime", "gather"), ("onnxruntime", "gather_gj"), ("onnxruntime", "gridsample")]
@@ -125,7 +143,7 @@ def main() -> None:
         pass
     with tempfile.TemporaryDirectory() as d:
         paths = {k: Path(d) / f"block_{k}.onnx" for k in LAYOUTS}
-        ops = {k: export_block(k, a.points, p) for k, p in paths.items()}
+        ops = {k: export_block(k, a.points, p, median_stride=a.median_stride) for k, p in paths.items()}
         runners = {c: _runner(c[0], paths[c[1]], feeds, a.threads) for c in cases}
         for run in runners.values():
             for _ in range(10):
@@ -138,7 +156,7 @@ def main() -> None:
                     run()
                     times[c].append(time.perf_counter() - t)
         print(f"one block of {SolverSettings().scale_every} Gauss-Newton steps, batch 2 x {a.points} points, "
-              f"{a.width}x{a.height} image, {a.threads} threads")
+              f"{a.width}x{a.height} image, {a.threads} threads, median over every {a.median_stride} point(s)")
         for (engine, layout), t in times.items():
             ms = np.array(t) * 1e3
             print(f"  {engine:12s} {LAYOUTS[layout]:30s} {ops[layout]:4d} ops  median {np.median(ms):.3f} ms  "
@@ -146,6 +164,9 @@ def main() -> None:
         for layout in ("gather", "gridsample"):
             kinds = ", ".join(f"{k} {v:.0f}" for k, v in top_nodes(paths[layout], feeds, a.threads))
             print(f"  onnxruntime profile, {layout} layout (us per block): {kinds}")
+        if ("openvino", "gridsample") in runners:
+            kinds = ", ".join(f"{k} {v:.0f}" for k, v in openvino_top_nodes(paths["gridsample"], feeds, a.threads))
+            print(f"  openvino profile, gridsample layout (us per block): {kinds}")
 
 
 if __name__ == "__main__":

@@ -416,3 +416,16 @@ done
 for d in "$OUT"/data/val_static* "$OUT"/data/static_2?? "$OUT"/data/heldout_?? "$OUT"/data/demo_909; do
   "$D3LVO" run "$d" --onnx "$OUT/shadows" --backend onnxruntime --threads 1 --out "$OUT/eval/shadows_$(basename "$d").txt" --overwrite
 done
+# cheaper solver steps, measured and not shipped (docs/evaluation.md, docs/performance.md): the
+# Huber threshold's median over every fourth point, and that with 6 steps at the coarse levels
+for v in "stride_4:--set pt_median_stride=4" "stride_4_coarse_6:--set pt_median_stride=4 --set pt_iters=6,6,15"; do
+  name=${v%%:*}
+  # shellcheck disable=SC2086
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$name" ${v#*:}
+  for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/traffic_3?? "$OUT"/data/static_2?? \
+           "$OUT"/data/heldout_?? "$OUT"/data/demo_909; do
+    "$D3LVO" run "$d" --onnx "$OUT/$name" --backend onnxruntime --threads 1 --out "$OUT/eval/${name}_$(basename "$d").txt" --overwrite
+  done
+done
+.venv/bin/python -m export.solver_bench --height 375 --width 1242
+.venv/bin/python -m export.solver_bench --height 375 --width 1242 --median-stride 4
