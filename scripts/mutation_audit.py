@@ -182,6 +182,15 @@ MUTATIONS = [
     Mutation("the confidence's target ignores moving shadows when asked to count them", "models/train.py",
              "    if shadows and \"shadow\" in batch:", "    if False:",
              ("tests/test_targets.py::test_motion_target_counts_moving_shadows_only_when_asked",)),
+    Mutation("the solver's graph takes the Huber median over every point whatever the stride", "models/point_solver.py",
+             "            k = huber_threshold(nr, ok * median_mask, s.median_stride)",
+             "            k = huber_threshold(nr, ok * median_mask)",
+             ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",
+              "tests/test_point_solver.py::test_export_set_reaches_the_graph")),
+    Mutation("the classical tracker picks the median's points by their place among those in view", "d3lvo_deploy/direct.py",
+             "            k = stride_threshold(r, np.flatnonzero(ok), cfg.median_stride)",
+             "            k = stride_threshold(r, np.arange(len(r)), cfg.median_stride)",
+             ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",)),
 ]
 
 
