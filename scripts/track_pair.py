@@ -30,16 +30,9 @@ from d3lvo_deploy.direct import (DirectConfig, DirectOdometry, TrackedFrame, con
                                  motion_cost, track)
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
-from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.poses import read_poses
-from d3lvo_deploy.projection import sparse_depth
 from d3lvo_deploy.sequence import KittiSequence
 from masked_tracker import without  # scripts/ is on the path of a script run from it
-
-
-def lidar_depth(image: np.ndarray, scan: np.ndarray, calib) -> np.ndarray:
-    """(H, W) metres of a frame's own LiDAR returns at its camera's resolution, 0 where none."""
-    return sparse_depth(clean_scan(scan), calib.P_velo_to_image2, image.shape[1], image.shape[0])
 
 
 def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
@@ -64,7 +57,10 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
-    depth, K = lidar_depth(seq.image(i + 1), seq.scan(i + 1), seq.calib), seq.calib.K2
+    # frame i+1's own LiDAR depth, as the tracker keeps it for the restart's check (pt_restart_depth)
+    depth, K = b.depth, seq.calib.K2
+    if depth is None:
+        sys.exit("the bundled model's classical mode keeps no scan depth (its pt_restart_depth is 0)")
     print(f"LiDAR depth error (median |d - z| / z against frame {i + 1}'s scan) at the true motion "
           f"{lidar_depth_error(a.points, truth, depth, K):.4f}")
     # where the pyramid loses it: from the true motion without the restart, on the finest levels
