@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import sys
 from dataclasses import replace
+from pathlib import Path
 
-import cv2
 import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
@@ -32,7 +32,7 @@ from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.sequence import KittiSequence
-from masked_tracker import without  # scripts/ is on the path of a script run from it
+from masked_tracker import untrusted, without  # scripts/ is on the path of a script run from it
 
 
 def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
@@ -43,10 +43,7 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
     odo = DirectOdometry(seq.calib, cfg)
     a, b = odo._frame(seq.image(i), seq.scan(i)), odo._frame(seq.image(i + 1), seq.scan(i + 1))
     if static_only:
-        moving = cv2.imread(f"{drive}/motion_2/{i:06d}.png", cv2.IMREAD_GRAYSCALE)
-        if moving is None:
-            sys.exit(f"{drive}/motion_2/{i:06d}.png: no motion mask (render the drive with --traffic)")
-        a = without(a, moving > 0)
+        a = without(a, untrusted(Path(drive), i, shadows=False))
     G = read_poses(f"{drive}/poses.txt").poses
     truth = change_frame(relative(G[i], G[i + 1]), seq.calib.T_cam2_cam0)  # image_2 motion, frame i+1 in frame i
     short = truth.copy()
