@@ -269,7 +269,10 @@ class OpenVinoSession:
         self.outputs = [_port_name(p, want_out, k) for k, p in enumerate(self.compiled.outputs)]
 
     def run(self, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-        self.request.infer(feeds)
+        # read in place rather than copied into the request (a copy per input per run: the
+        # solver's full-resolution image pyramids are megabytes, docs/performance.md); the call is
+        # synchronous, so the arrays are not changed while it reads them
+        self.request.infer({k: np.ascontiguousarray(v) for k, v in feeds.items()}, share_inputs=True)
         # the request's output tensors are reused by the next run: copy them out
         return [self.request.get_output_tensor(k).data.copy() for k in range(len(self.outputs))]
 
