@@ -165,21 +165,29 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
         ok = ((grid.abs().amax(1, keepdim=True) <= 1.0) & (z > 0.1)).to(dtype) * w_ok
         active = active * (ok.sum(-1, keepdim=True) >= 12).to(dtype)  # too few: stop, as the tracker
         if sampling.gathering():  # outside the image `ok` is 0
-            smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))
+            smp = sampling.bilinear_inside(stack, grid, (half, last_cell, row_map, offsets))  # (B,3,N)
+            cur, gxy = smp[:, :1], smp[:, 1:]
         else:
-            smp = sampling.grid_sample_shared(stack, grid, layout)  # (B,3,N)
+            cur, gx, gy = sampling.grid_sample_channels(stack, grid, layout)  # (B,1,N) each
         # minus the residual: the normal equations come out as [H | -g]; with s.affine, frame t's
         # grey against frame t-1's matched on every point in view, the Huber threshold from that,
         # then matched again with the Huber weights
-        cur = smp[:, :1]
         nr = (affine_fit(ref, cur, ok * weight) if s.affine else ref) - cur
         if i % s.scale_every == 0:
             k = huber_threshold(nr, ok * median_mask, s.median_stride)
         if s.affine:
             nr = affine_fit(ref, cur, ok * weight * huber_weights_at(nr, k)) - cur
-        Gz = smp[:, 1:] * (f * zi)  # d grey / d (x/z, y/z)
-        a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
-        Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
+        if sampling.gathering():
+            Gz = gxy * (f * zi)  # d grey / d (x/z, y/z)
+            a = torch.cat([Gz, -(Gz * Xt[:, :2]).sum(1, keepdim=True) * zi], 1)  # d r / d X', (B,3,N)
+            Jr = torch.cat([a, diff @ ((roll @ Xt) * (roll_back @ a)), nr], 1)  # [a, X' x a, -r]
+        else:  # the same written out per row: elementwise ops that OpenVINO fuses into one kernel,
+            # where the cross product's three small MatMuls are each a kernel of their own
+            x, y, zt = Xt.split(1, 1)
+            fx, fy = f.split(1, 1)
+            au, av = gx * (fx * zi), gy * (fy * zi)
+            az = -(au * x + av * y) * zi
+            Jr = torch.cat([au, av, az, y * az - zt * av, zt * au - x * az, x * av - y * au, nr], 1)
         w = ok * weight * huber_weights_at(nr, k)
         Hg = ((Jr * w) @ Jr.transpose(1, 2))[:, :6]  # (B,6,7): [H | -g]
         # damped diagonal (1 + damping) diag(H) + 1e-12; a stopped level (no points left, say an

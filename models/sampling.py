@@ -123,3 +123,14 @@ def grid_sample_shared(x: torch.Tensor, grid: torch.Tensor, layout: tuple[int, i
     out = F.grid_sample(x, g.reshape(-1, 1, k * n, 2), mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (G,C,1,kN)
     return out.reshape(-1, c, k, n).transpose(1, 2).reshape(-1, c, n)
+
+
+def grid_sample_channels(x: torch.Tensor, grid: torch.Tensor, layout: tuple[int, int, int] | None = None
+                         ) -> list[torch.Tensor]:
+    """`grid_sample_shared` as one (B,1,N) tensor per channel of x: GridSample's output split by
+    channel, which needs no transpose back to the points' rows (a (G,C,1,kN) channel is image i's
+    k rows side by side, so it reshapes to (kG,1,N) as it is)."""
+    k, c, n = (grid.shape[0] // x.shape[0], x.shape[1], grid.shape[-1]) if layout is None else layout
+    out = F.grid_sample(x, grid.transpose(1, 2).reshape(-1, 1, k * n, 2), mode="bilinear", padding_mode="zeros",
+                        align_corners=True)  # (G,C,1,kN)
+    return [o.reshape(-1, 1, n) for o in out.split(1, 1)]

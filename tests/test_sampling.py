@@ -14,7 +14,8 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine, load_manifest
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel
 from export.onnx_export import all_nodes
-from models.sampling import bilinear, bilinear_inside, gathered, gathering, grid_sample_shared, inside_lattice
+from models.sampling import (bilinear, bilinear_inside, gathered, gathering, grid_sample_channels, grid_sample_shared,
+                             inside_lattice)
 
 
 def _grid_sample(x, uv):
@@ -64,6 +65,11 @@ def test_solves_sharing_an_image():
         [8.0, 5.0]).view(1, 2, 1))).abs().max() < 1e-5  # zeros outside, as GridSample
     # with one solve per image it is GridSample itself
     assert (grid_sample_shared(copies, grid) - ref).abs().max() < 1e-6
+    # split by channel (OpenVINO's solver steps): channel c of every row, shared image or copies
+    for image in (x, copies):
+        channels = grid_sample_channels(image, grid)
+        assert len(channels) == 3 and all(c.shape == (4, 1, 300) for c in channels)
+        assert (torch.cat(channels, 1) - ref).abs().max() < 1e-6
 
 
 def test_gathered_is_scoped():
