@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from .blas import one_blas_thread
 from .calib import Calib, parse_calib
 from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
@@ -128,6 +129,10 @@ class Odometry:
         fixes the view)."""
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
+        with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
+            return self._prepare(image, points)
+
+    def _prepare(self, image: np.ndarray, points: np.ndarray | None) -> "PreparedFrame":
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
         rgb = pre.rgb_input(image)

@@ -458,3 +458,29 @@ def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp
         assert ("beside the network" in r.output) == (flag == "--pipeline"), r.output
         outs[flag] = out.read_bytes()
     assert outs["--pipeline"] == outs["--no-pipeline"]
+
+
+def test_frame_preparation_holds_blas_to_one_thread(small_model, small_synth, monkeypatch):
+    """The projection's numpy products run on one BLAS thread (`d3lvo_deploy.blas`): OpenBLAS's
+    workers spin after a threaded call and would take a core from the engine for the rest of the
+    frame. The caller's own setting is back afterwards."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from d3lvo_deploy import odometry
+
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(onnx_dir, seq.calib)
+    seen = []
+    real = odometry.rows_in_view
+
+    def spy(*args, **kwargs):
+        seen.append([lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(odometry, "rows_in_view", spy)
+    with threadpool_limits(limits=2, user_api="blas"):
+        odo.prepare(seq.image(0), seq.scan(0))
+        after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    assert seen and seen[0] and all(n == 1 for n in seen[0]), seen
+    assert after and all(n == 2 for n in after), after
