@@ -34,17 +34,19 @@ class PointConfig:
     capacity: int = 2048
 
 
-def grey_image(image: np.ndarray) -> np.ndarray:
-    """(H,W,3) uint8 RGB (or (H,W) grey) -> (H,W) float32 grey in [0, 1]."""
+def grey_image(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """(H,W,3) uint8 RGB (or (H,W) grey) -> (H,W) float32 grey in [0, 1] (written into `out`)."""
     g = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    return g.astype(np.float32) / 255.0
+    return np.divide(g, np.float32(255.0), out=out, dtype=np.float32)
 
 
-def gradients(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Central differences, edges replicated (the solver's own; the graph computes the same)."""
-    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
-    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=1, borderType=cv2.BORDER_REPLICATE) * 0.5
-    return gx, gy
+def gradients(grey: np.ndarray, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences, edges replicated (the solver's own; the graph computes the same);
+    written into `out` (2, H, W) float32 where given."""
+    out = np.empty((2, *grey.shape), np.float32) if out is None else out
+    for k, (dx, dy) in enumerate(((1, 0), (0, 1))):
+        cv2.Sobel(grey, cv2.CV_32F, dx, dy, dst=out[k], ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
+    return out[0], out[1]
 
 
 def project(X: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,12 +142,19 @@ def solver_pyramid(grey: np.ndarray, levels: int, grads: tuple[np.ndarray, np.nd
     image itself; what `models.point_solver.image_pyramids` computes in torch. Made once per frame
     (frame t's is frame t-1's at the next pair), beside the network in a pipeline, instead of in
     the graph at every pair. `grads`: level 0's `gradients(grey)` where the caller has them."""
-    out, g = [], grey
+    out = []
     for k in range(levels):
+        h, w = grey.shape if k == 0 else ((out[-1].shape[1] + 1) // 2, (out[-1].shape[2] + 1) // 2)
+        level = np.empty((3, h, w), np.float32)  # each image written in place: no stacking copies
         if k:
-            g = cv2.pyrDown(g)
-        gx, gy = grads if (k == 0 and grads is not None) else gradients(g)
-        out.append(np.stack([g, gx, gy]))
+            cv2.pyrDown(out[-1][0], dst=level[0])
+        else:
+            level[0] = grey
+        if k == 0 and grads is not None:
+            level[1], level[2] = grads
+        else:
+            gradients(level[0], out=level[1:])
+        out.append(level)
     return out
 
 
@@ -164,11 +173,15 @@ class SolverFrame:
     def of(cls, image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
            cfg: PointConfig, levels: int = 0, depth_P: np.ndarray | None = None) -> "SolverFrame":
         """depth_P: the 3x4 LiDAR-to-pixel matrix where the graph takes the frame's LiDAR depth."""
-        grey = grey_image(image)
-        grads = gradients(grey)
+        stack = np.empty((3, *image.shape[:2]), np.float32)  # the finest level: grey, d/du, d/dv
+        grey = grey_image(image, stack[0])
+        grads = gradients(grey, stack[1:])
         points = textured_points(scan, T_cam_velo, K, grey, cfg, grads)
         depth = None if depth_P is None else sparse_depth(scan, depth_P, grey.shape[1], grey.shape[0])
-        return cls(grey, points, solver_pyramid(grey, levels, grads) if levels else None, depth)
+        pyramid = None
+        if levels:
+            pyramid = [stack, *solver_pyramid(cv2.pyrDown(grey), levels - 1)]
+        return cls(grey, points, pyramid, depth)
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:
