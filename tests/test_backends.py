@@ -295,14 +295,15 @@ def test_run_names_threads_taken_from_omp_num_threads(small_model, small_synth, 
 
 
 def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
-    """With SessionConfig.spinning the pool threads spin between the ops of a run but stop when it
+    """The pool threads spin between the ops of a run (SessionConfig.spinning) but stop when it
     returns: numpy's projection between two stages must have the cores. Measured as this process's
     CPU time while it sleeps after a run: onnxruntime's plain spinning burns ~45 ms of CPU per 100 ms
     idle on 2 threads, a sleeping pool ~0.1 ms."""
     import time
 
     _, onnx_dir = small_model
-    m = StageModel(onnx_dir, SessionConfig(backend="onnxruntime", threads=2, spinning=True))
+    m = StageModel(onnx_dir, SessionConfig(backend="onnxruntime", threads=2))
+    assert SessionConfig().spinning
     feeds = {name: np.zeros(shape, np.float32) for name, shape in m.sessions["encoder"].inputs}
     idle = []
     for _ in range(3):
