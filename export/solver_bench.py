@@ -19,6 +19,7 @@ import argparse
 import collections
 import contextlib
 import json
+from dataclasses import replace
 import tempfile
 import time
 import warnings
@@ -31,12 +32,17 @@ import onnx
 import onnxruntime as ort
 import torch
 
+from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.points import bilinear
 from export.solver_loop import BODY_INPUTS, block_graph
 from models import point_solver, sampling
+from models.config import D3LVOConfig
 from models.gauss_newton import grid_intrinsics
 from models.point_solver import SolverSettings
+from models.pose_points import solver_settings
 
+# the runtime's precision: left to itself, OpenVINO runs bf16 on CPUs with AMX or AVX512-BF16
+OV_F32 = {"INFERENCE_PRECISION_HINT": "f32"}
 LAYOUTS = {"gather": "GatherElements + Cramer (Det)", "gather_gj": "GatherElements + Gauss-Jordan",
            "gridsample": "GridSample + Gauss-Jordan"}
 
@@ -66,13 +72,21 @@ def block_feeds(height: int, width: int, points: int, batch: int = 2, seed: int 
     return feeds
 
 
-def export_block(layout: str, points: int, path: Path, batch: int = 2, median_stride: int = 1) -> int:
-    """One block in a `LAYOUTS` layout; returns its non-constant ops."""
+def bundled_settings(median_stride: int | None = None) -> SolverSettings:
+    """The bundled model's solver settings (exposure match and block length included: they set
+    what a step holds), with `median_stride` in place of its own where given."""
+    cfg = D3LVOConfig.from_dict(json.loads((bundled_model_dir() / "manifest.json").read_text())["model_config"])
+    s = solver_settings(cfg)
+    return s if median_stride is None else replace(s, median_stride=median_stride)
+
+
+def export_block(layout: str, points: int, path: Path, batch: int = 2, median_stride: int | None = None) -> int:
+    """One block in a `LAYOUTS` layout with the bundled model's settings; returns its non-constant ops."""
     eliminate = mock.patch.object(point_solver, "cramer_solve", point_solver.scaled_solve)
     with sampling.gathered(layout != "gridsample"), warnings.catch_warnings(), \
             (eliminate if layout == "gather_gj" else contextlib.nullcontext()):
         warnings.simplefilter("ignore")
-        g = block_graph(SolverSettings(median_stride=median_stride), points, 17, False, batch, images=1)
+        g = block_graph(bundled_settings(median_stride), points, 17, False, batch, images=1)
     onnx.save(onnx.helper.make_model(g, opset_imports=[onnx.helper.make_opsetid("", 17)]), str(path))
     return sum(n.op_type != "Constant" for n in g.node)
 
@@ -86,10 +100,10 @@ def _runner(engine: str, path: Path, feeds: dict, threads: int):
         return lambda: s.run(None, fd)
     import openvino as ov
 
-    c = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads})
+    c = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads, **OV_F32})
     r = c.create_infer_request()
     fd = {i.get_any_name(): feeds[i.get_any_name()] for i in c.inputs}
-    return lambda: r.infer(fd)
+    return lambda: r.infer(fd, share_inputs=True)  # as the runtime: no copy of the image stack per call
 
 
 def top_nodes(path: Path, feeds: dict, threads: int, runs: int = 100, top: int = 6) -> list[tuple[str, float]]:
@@ -113,12 +127,12 @@ def openvino_top_nodes(path: Path, feeds: dict, threads: int, runs: int = 100, t
     """OpenVINO's per-node counters: microseconds per block by executed node kind, the costliest first."""
     import openvino as ov
 
-    c = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads, "PERF_COUNT": "YES"})
+    c = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_NUM_THREADS": threads, "PERF_COUNT": "YES", **OV_F32})
     r = c.create_infer_request()
     fd = {i.get_any_name(): feeds[i.get_any_name()] for i in c.inputs}
     by: dict[str, float] = collections.defaultdict(float)
     for _ in range(runs):
-        r.infer(fd)
+        r.infer(fd, share_inputs=True)
         for p in r.profiling_info:
             by[p.node_type] += p.real_time.total_seconds() * 1e6 / runs
     return sorted(by.items(), key=lambda kv: -kv[1])[:top]
@@ -131,7 +145,8 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=2048)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=15, help="turns per engine and layout, 20 blocks each")
-    ap.add_argument("--median-stride", type=int, default=1, help="pt_median_stride of the exported blocks")
+    ap.add_argument("--median-stride", type=int, default=None,
+                    help="pt_median_stride of the exported blocks (default: the bundled model's)")
     a = ap.parse_args()
     feeds = block_feeds(a.height, a.width, a.points)
     cases = [("onnxruntime", "gather"), ("onnxruntime", "gather_gj"), ("onnxruntime", "gridsample")]
@@ -155,8 +170,10 @@ def main() -> None:
                     t = time.perf_counter()
                     run()
                     times[c].append(time.perf_counter() - t)
-        print(f"one block of {SolverSettings().scale_every} Gauss-Newton steps, batch 2 x {a.points} points, "
-              f"{a.width}x{a.height} image, {a.threads} threads, median over every {a.median_stride} point(s)")
+        s = bundled_settings(a.median_stride)
+        print(f"one block of {s.scale_every} Gauss-Newton steps (the bundled model's settings, exposure match "
+              f"{'on' if s.affine else 'off'}), batch 2 x {a.points} points, {a.width}x{a.height} image, "
+              f"{a.threads} threads, fp32, median over every {s.median_stride} point(s)")
         for (engine, layout), t in times.items():
             ms = np.array(t) * 1e3
             print(f"  {engine:12s} {LAYOUTS[layout]:30s} {ops[layout]:4d} ops  median {np.median(ms):.3f} ms  "

@@ -34,6 +34,12 @@ from .point_solver import (SolverSettings, consensus_gain, image_pyramids, proje
                            rotations_differ, solve)
 
 
+def solver_settings(cfg: D3LVOConfig) -> SolverSettings:
+    """The point solver's settings in a model config."""
+    return SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every, cfg.pt_refine,
+                          cfg.pt_affine, cfg.pt_fine_restart, cfg.pt_restart_depth, cfg.pt_median_stride)
+
+
 class MovingLogits(nn.Module):
     """Per-cell logit of 'moves on its own'; starts at p = 0.05 everywhere (nearly classical).
     Dilated convs: a vehicle's interior has no texture, its evidence is at its edges, up to ~15
@@ -80,9 +86,7 @@ class PointPose(nn.Module):
         # features too
         looks = cfg.flow_hidden[1] + cfg.feature_widths[self.level] if cfg.pt_conf_inputs == "all" else 0
         self.moving = MovingLogits(2 + 1 + 3 + looks)
-        self.settings = SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every,
-                                        cfg.pt_refine, cfg.pt_affine, cfg.pt_fine_restart,
-                                        cfg.pt_restart_depth, cfg.pt_median_stride)
+        self.settings = solver_settings(cfg)
 
     def moving_logits(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                       invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor,
