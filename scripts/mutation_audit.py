@@ -191,6 +191,14 @@ MUTATIONS = [
              "            k = stride_threshold(r, np.flatnonzero(ok), cfg.median_stride)",
              "            k = stride_threshold(r, np.arange(len(r)), cfg.median_stride)",
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",)),
+    Mutation("frames prepared with numpy's BLAS threads left free", "d3lvo_deploy/odometry.py",
+             "        with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)\n"
+             "            return self._prepare(image, points)",
+             "        return self._prepare(image, points)",
+             ("tests/test_runtime.py::test_frame_preparation_holds_blas_to_one_thread",)),
+    Mutation("OpenVINO's solver steps take the rotation Jacobian's third row with the wrong sign", "models/point_solver.py",
+             "zt * au - x * az, x * av - y * au, nr]", "zt * au - x * az, y * au - x * av, nr]",
+             ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker", "tests/test_sampling.py")),
 ]
 
 
