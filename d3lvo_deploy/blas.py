@@ -1,10 +1,10 @@
 """numpy's BLAS on one thread for the runtime's per-frame work.
 
 OpenBLAS's worker threads keep spinning for a while after a multi-threaded call, such as the
-scan's (N, 4) x (4, 3) product in the projection. On a 2-core vehicle computer they then hold a
-core while the inference engine runs the frame's stages: measured on the real frames, every
-stage after the projection took about 1.3x as long (docs/performance.md). The runtime's numpy
-work is a few vector passes per frame, which gain nothing from BLAS threads.
+small matrix products of the scan's projection. On a 2-core vehicle computer they then hold a
+core while the inference engine runs the frame's stages: measured on the real frames, OpenVINO's
+completion and encoder took 1.6x as long and its whole frame 1.26-1.28x (docs/performance.md). The
+runtime's numpy work is a few vector passes per frame, which gain nothing from BLAS threads.
 """
 
 from __future__ import annotations
