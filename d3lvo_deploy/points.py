@@ -137,23 +137,24 @@ def point_config(model_config: dict) -> PointConfig:
                        max_depth=model_config["max_depth"], capacity=model_config["pt_capacity"])
 
 
-def solver_pyramid(grey: np.ndarray, levels: int, grads: tuple[np.ndarray, np.ndarray] | None = None) -> list[np.ndarray]:
+def solver_pyramid(grey: np.ndarray, levels: int, finest: np.ndarray | None = None) -> list[np.ndarray]:
     """Finest first: (3, h, w) float32 grey, d/du, d/dv at `levels` pyrDown levels, level 0 the
     image itself; what `models.point_solver.image_pyramids` computes in torch. Made once per frame
     (frame t's is frame t-1's at the next pair), beside the network in a pipeline, instead of in
-    the graph at every pair. `grads`: level 0's `gradients(grey)` where the caller has them."""
+    the graph at every pair. `finest`: level 0 already made (grey and `gradients`), where the
+    caller has it. Each image is written into its level in place: no stacking copies."""
     out = []
     for k in range(levels):
+        if k == 0 and finest is not None:
+            out.append(finest)
+            continue
         h, w = grey.shape if k == 0 else ((out[-1].shape[1] + 1) // 2, (out[-1].shape[2] + 1) // 2)
-        level = np.empty((3, h, w), np.float32)  # each image written in place: no stacking copies
+        level = np.empty((3, h, w), np.float32)
         if k:
             cv2.pyrDown(out[-1][0], dst=level[0])
         else:
             level[0] = grey
-        if k == 0 and grads is not None:
-            level[1], level[2] = grads
-        else:
-            gradients(level[0], out=level[1:])
+        gradients(level[0], out=level[1:])
         out.append(level)
     return out
 
@@ -178,10 +179,7 @@ class SolverFrame:
         grads = gradients(grey, stack[1:])
         points = textured_points(scan, T_cam_velo, K, grey, cfg, grads)
         depth = None if depth_P is None else sparse_depth(scan, depth_P, grey.shape[1], grey.shape[0])
-        pyramid = None
-        if levels:
-            pyramid = [stack, *solver_pyramid(cv2.pyrDown(grey), levels - 1)]
-        return cls(grey, points, pyramid, depth)
+        return cls(grey, points, solver_pyramid(grey, levels, stack) if levels else None, depth)
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:

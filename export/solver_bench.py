@@ -19,10 +19,10 @@ import argparse
 import collections
 import contextlib
 import json
-from dataclasses import replace
 import tempfile
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from unittest import mock
 

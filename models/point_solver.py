@@ -152,11 +152,12 @@ def gn_steps(P: torch.Tensor, active: torch.Tensor, Xh: torch.Tensor, ref: torch
     inputs are tensors of the outer graph.
     onnxruntime's graph (`sampling.gathering`) samples with Gathers and solves the 6x6 system by
     Cramer's rule (one Det op); OpenVINO's by GridSample and Gauss-Jordan elimination (no Det)."""
-    roll, roll_back, diff = literal(ROLL, Xh), literal(ROLL_BACK, Xh), literal(DIFF, Xh)
     diagonal = literal([[8 * i] for i in range(6)], Xh).long()  # H's diagonal in [H | g] flattened
     to_last = literal([[0.0, 0.0, 0.0, 1.0]], Xh)  # rho (B,3,1) -> (B,3,4) as the translation column
     dtype = Xh.dtype
     solve_6x6 = cramer_solve if sampling.gathering() else scaled_solve
+    if sampling.gathering():  # the cross product's MatMuls (OpenVINO's graph writes it per row)
+        roll, roll_back, diff = literal(ROLL, Xh), literal(ROLL_BACK, Xh), literal(DIFF, Xh)
     for i in range(steps):
         Xt = P @ Xh  # (B,3,N)
         z = Xt[:, 2:3]
