@@ -114,8 +114,9 @@ def run_command(
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by their timestamps, like a live sensor."),
     pipeline: bool = typer.Option(False, "--pipeline/--no-pipeline", help="Read and project frame t+1 on a second "
-                                  "thread while the network works on frame t (same poses; pays with more than 2 "
-                                  "cores: `d3lvo bench` prints both rates)."),
+                                  "thread while the network works on frame t, whose flow+pose stage then takes one thread "
+                                  "fewer (same poses; more frames/s, a little more latency: `d3lvo bench` prints "
+                                  "both rates)."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),
@@ -220,7 +221,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         model_dir = resolve_model_dir(onnx)
         manifest = load_manifest(model_dir, verify_hashes=False)
         frames = (len(seq) if end is None else min(end, len(seq))) - start
-        sc, why = choose_engine(sc, manifest, frames)
+        sc, why = choose_engine(sc.pipelined() if pipeline else sc, manifest, frames)
         if sc.backend == "openvino" and not openvino_compiled(sc, manifest):
             loading = "compiling the model for OpenVINO (the first time on this CPU only; cached for later runs)"
     if viz is not None and (method != "d3lvo" or viz_every < 1):

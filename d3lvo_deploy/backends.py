@@ -39,6 +39,14 @@ OPT_LEVELS = {
 }
 
 
+def _usable_cores() -> int:
+    """The cores this process may run on (a container's or taskset's share, not the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def resolve_providers(name: str) -> list[str]:
     if name not in PROVIDERS:
         raise D3LVOInputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, not {name!r}")
@@ -63,6 +71,9 @@ class SessionConfig:
     spinning: bool = True
     backend: str = "onnxruntime"
     ov_precision: str = "f32"
+    # threads of the flow+pose stage alone (0: as the others). A pipelined run gives it one fewer
+    # than the machine has (`pipelined`)
+    flowpose_threads: int = 0
 
     @property
     def engine_threads(self) -> int:
@@ -75,6 +86,21 @@ class SessionConfig:
             return max(0, int(os.environ.get("OMP_NUM_THREADS", "0").split(",")[0]))
         except ValueError:
             return 0
+
+    def for_stage(self, stage: str) -> "SessionConfig":
+        """The settings one stage's session opens with."""
+        return replace(self, threads=self.flowpose_threads) if stage == "flowpose" and self.flowpose_threads else self
+
+    def pipelined(self) -> "SessionConfig":
+        """For a two-deep pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of
+        the cores, so that the next frame's reading and preparation (one thread of numpy and
+        OpenCV) run beside it on a core of their own instead of taking turns with its threads. The
+        stage is per-op overhead more than arithmetic: one thread fewer costs it a few milliseconds
+        and frees the ~10 ms of preparation (docs/performance.md)."""
+        if self.flowpose_threads:
+            return self
+        n = self.engine_threads or _usable_cores()
+        return self if n < 2 else replace(self, flowpose_threads=n - 1)
 
     def resolved(self) -> "SessionConfig":
         """The same settings with "auto" replaced by the engine it picks here."""
@@ -152,7 +178,8 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
     cache = openvino_cache_dir(openvino.__version__)
     if cache is None:
         return False
-    return all((cache / _marker(sc, n, st["sha256"])).is_file() for n, st in manifest.get("stages", {}).items())
+    return all((cache / _marker(sc.for_stage(n), n, st["sha256"])).is_file()
+               for n, st in manifest.get("stages", {}).items())
 
 
 def available_backends() -> list[str]:

@@ -69,10 +69,15 @@ class EngineStream:
         return dict(self.odo.last_timing.ms)
 
     def finish(self, times: StageTimes, runs: int) -> None:
-        """Ends profiling, or else times the same stream pipelined (`pipelined_fps`)."""
+        """Ends profiling, or else times the same stream pipelined (`pipelined_fps`), with the
+        flow+pose stage's threads as a pipelined run has them."""
         if self.sc.profile_dir:
             self.model.end_profiling()
         else:
+            sc = self.sc.pipelined()
+            if sc != self.sc:  # a pipelined run's thread split: the flow+pose stage opened again
+                self.model.reopen("flowpose", sc)
+                warm_up([self], ENGINE_WARMUP)
             times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs)
 
 

@@ -9,6 +9,7 @@ returns a dict keyed by the manifest's output names; `flow_pose` maps frame t-1'
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,13 +72,22 @@ class StageModel:
         for name, st in self.manifest["stages"].items():
             st = for_engine(st, self.backend)
             path = self.dir / st["file"]
-            sess = open_session(path, sc, name, st)
+            sess = open_session(path, sc.for_stage(name), name, st)
             self._check_io(path, sess, st)
             self.sessions[name] = sess
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
         self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
         self.geometric = "init_pose" in self.input_names("flowpose")
+
+    def reopen(self, stage: str, sc: SessionConfig) -> None:
+        """Opens `stage` again with other session settings on the same engine (the bench's
+        pipelined stream: `SessionConfig.pipelined`)."""
+        st = for_engine(self.manifest["stages"][stage], self.backend)
+        path = self.dir / st["file"]
+        sess = open_session(path, replace(sc, backend=self.backend).for_stage(stage), stage, st)
+        self._check_io(path, sess, st)
+        self.sessions[stage] = sess
 
     @staticmethod
     def _check_io(path: Path, sess, st: dict) -> None:

@@ -15,7 +15,7 @@ from d3lvo_deploy.cpu import cpu_info
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine
 from d3lvo_deploy.onnx_model import StageModel
-from d3lvo_deploy.pipeline import RunConfig, run_sequence
+from d3lvo_deploy.pipeline import RunConfig, prepare_run, run_sequence
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.sequence import KittiSequence
 from export.flops import graph_flops
@@ -312,3 +312,22 @@ def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
         time.sleep(0.2)
         idle.append(time.process_time() - t)
     assert min(idle) < 0.02, f"CPU seconds while idle after a run: {idle}"
+
+
+def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, small_synth, tmp_path):
+    """Pipelined, the next frame is read and prepared beside the flow+pose stage: that stage opens
+    with one thread fewer than the cores given, so that the preparation has one of its own; one
+    frame at a time, every stage has them all. One thread leaves nothing to split."""
+    sc = SessionConfig(threads=2)
+    assert sc.pipelined().for_stage("flowpose").engine_threads == 1
+    assert sc.pipelined().for_stage("encoder").engine_threads == 2
+    assert SessionConfig(threads=1).pipelined() == SessionConfig(threads=1)
+    assert SessionConfig(threads=4).pipelined().pipelined().for_stage("flowpose").engine_threads == 3
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    for pipeline, solver_threads in ((True, 1), (False, 2)):
+        rc = RunConfig(out=tmp_path / f"{pipeline}.txt", pipeline=pipeline)
+        plan = prepare_run(seq, onnx_dir, rc, SessionConfig(threads=2, backend="onnxruntime"))
+        threads = {n: s.sess.get_session_options().intra_op_num_threads for n, s in plan.odo.model.sessions.items()}
+        assert threads.pop("flowpose") == solver_threads
+        assert threads and set(threads.values()) == {2}
