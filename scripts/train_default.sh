@@ -389,8 +389,10 @@ done
 # moving shadows (shadow_2/) in the confidence's target, measured, not shipped (docs/model-card.md).
 # First the classical mode with an oracle's points dropped: those on movers, then also those in
 # moving shadows
-for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_traffic_612 val_traffic_613 traffic_311 \
-         traffic_315 traffic_317 traffic_319; do
+# (all fifteen held-out traffic drives: docs/model-card.md, how much of the 30 % cut a confidence can reach)
+for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_traffic_612 val_traffic_613 traffic_309 \
+         traffic_310 traffic_311 traffic_312 traffic_313 traffic_314 traffic_315 traffic_316 traffic_317 traffic_318 \
+         traffic_319 traffic_320 traffic_321 traffic_322 traffic_323; do
   .venv/bin/python scripts/masked_tracker.py "$OUT/data/$s" "$OUT/eval/movers_dropped_$s.txt"
   .venv/bin/python scripts/masked_tracker.py "$OUT/data/$s" "$OUT/eval/shadows_dropped_$s.txt" --shadows
 done
