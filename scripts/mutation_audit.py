@@ -199,6 +199,10 @@ MUTATIONS = [
     Mutation("OpenVINO's solver steps take the rotation Jacobian's third row with the wrong sign", "models/point_solver.py",
              "zt * au - x * az, x * av - y * au, nr]", "zt * au - x * az, y * au - x * av, nr]",
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker", "tests/test_sampling.py")),
+    Mutation("a pipelined run opens the flow+pose stage on every thread, beside the reader's work", "d3lvo_deploy/onnx_model.py",
+             "            sess = open_session(path, sc.for_stage(name), name, st)",
+             "            sess = open_session(path, sc, name, st)",
+             ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
 ]
 
 
