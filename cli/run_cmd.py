@@ -261,7 +261,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                       optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)
         _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
-                      seq)
+                      seq, sc.for_stage("flowpose").engine_threads if method == "d3lvo" else None)
         if fresh:
             from d3lvo_deploy.results import link_latest
 
@@ -309,7 +309,8 @@ def _name(seq) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
 
 
-def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq) -> None:
+def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq,
+                  flowpose_threads: int | None = None) -> None:
     import platform
 
     from d3lvo_deploy import __version__
@@ -326,6 +327,8 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq) 
                     "python": platform.python_version(), "d3lvo_deploy": __version__},
         "recording": {"frames": len(seq), "pose_frame": seq.frame_label},
     }
+    if flowpose_threads is not None:  # what the flow+pose stage ran on (a pipelined run: one fewer; 0: the engine's choice)
+        tables["machine"]["flowpose_threads"] = flowpose_threads
     folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
                       + to_toml(tables))
 

@@ -39,12 +39,20 @@ OPT_LEVELS = {
 }
 
 
-def _usable_cores() -> int:
-    """The cores this process may run on (a container's or taskset's share, not the machine's)."""
+def _usable_cores(topology: str = "/sys/devices/system/cpu") -> int:
+    """The physical cores this process may run on (a taskset's share, not the machine's): what
+    the engines take by default, one thread per core, whatever its hyperthreads."""
     try:
-        return len(os.sched_getaffinity(0))
+        cpus = sorted(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
+    cores = set()
+    for cpu in cpus:
+        try:  # the logical CPUs that share this one's core, e.g. "0,4" or "0-1"
+            cores.add(Path(f"{topology}/cpu{cpu}/topology/thread_siblings_list").read_text().strip())
+        except OSError:
+            cores.add(str(cpu))
+    return max(1, len(cores))
 
 
 def resolve_providers(name: str) -> list[str]:
@@ -94,12 +102,12 @@ class SessionConfig:
     def pipelined(self) -> "SessionConfig":
         """For a two-deep pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of
         the cores, so that the next frame's reading and preparation (one thread of numpy and
-        OpenCV) run beside it on a core of their own instead of taking turns with its threads. The
-        stage is per-op overhead more than arithmetic: one thread fewer costs it a few milliseconds
-        and frees the ~10 ms of preparation (docs/performance.md)."""
+        OpenCV) run beside it on a core of their own instead of taking turns with its threads: the
+        stage is per-op overhead more than arithmetic, and loses less to one thread fewer than the
+        preparation takes (docs/performance.md)."""
         if self.flowpose_threads:
             return self
-        n = self.engine_threads or _usable_cores()
+        n = self.engine_threads or _usable_cores()  # what the engines take when not told
         return self if n < 2 else replace(self, flowpose_threads=n - 1)
 
     def resolved(self) -> "SessionConfig":

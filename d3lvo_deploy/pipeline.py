@@ -77,7 +77,7 @@ class RunConfig:
     # read and prepare frame t+1 (image, scan, projection, IP-Basic, solver points) on a second
     # thread while the network works on frame t, the flow+pose stage then one thread short
     # (`SessionConfig.pipelined`); the poses are the same either way. More frames per second
-    # (on 2 cores a fifth more on OpenVINO), each frame's latency a little longer, more on
+    # (on 2 cores a fifth to a quarter more on OpenVINO), each frame's latency a little longer, more on
     # onnxruntime (docs/performance.md): off by default, the switch for a CPU that falls behind
     pipeline: bool = False
 
@@ -198,7 +198,7 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
-    if rc.pipeline and odometry is None and model is None:
+    if rc.pipeline and odometry is None and model is None and n - len(done) > 1:  # as `execute_run` pipelines
         sc = sc.pipelined()
     odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
     return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done)

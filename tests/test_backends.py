@@ -331,3 +331,18 @@ def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, 
         threads = {n: s.sess.get_session_options().intra_op_num_threads for n, s in plan.odo.model.sessions.items()}
         assert threads.pop("flowpose") == solver_threads
         assert threads and set(threads.values()) == {2}
+
+
+def test_the_pipelined_split_counts_physical_cores(tmp_path, monkeypatch):
+    """Left to themselves the engines take one thread per physical core: on 2 cores with two
+    hyperthreads each (CPUs 0-3, siblings 0,2 and 1,3) the flow+pose stage gets 1 thread, not 3."""
+    from d3lvo_deploy import backends
+
+    for cpu, siblings in enumerate(("0,2", "1,3", "0,2", "1,3")):
+        (tmp_path / f"cpu{cpu}" / "topology").mkdir(parents=True)
+        (tmp_path / f"cpu{cpu}" / "topology" / "thread_siblings_list").write_text(siblings + "\n")
+    monkeypatch.setattr(backends.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    assert backends._usable_cores(str(tmp_path)) == 2
+    monkeypatch.setattr(backends, "_usable_cores", lambda: 2)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert SessionConfig().pipelined().for_stage("flowpose").engine_threads == 1
