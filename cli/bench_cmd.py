@@ -311,7 +311,7 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
         med, slowest = tb["total"]["median"], tb["total"]["max"]
         out.print(f"{b}: {1000.0 / med:.1f} frames/s end to end (incl. projection), median {med:.1f} ms "
                   f"{'within' if med <= 100.0 else 'over'} the 10 Hz budget of 100 ms, slowest frame {slowest:.1f} ms"
-                  + (f"; pipelined (`d3lvo run --pipeline`: frame t+1 prepared beside the solver) "
+                  + (f"; pipelined (`d3lvo run --pipeline`: frame t+1 read ahead, encoded too on onnxruntime) "
                      f"{res['backends'][b]['pipelined_fps']:.1f} frames/s"
                      if res["backends"][b].get("pipelined_fps") else ""), highlight=False)
     msg = f"peak RSS {res['rss_mb']:.0f} MB" + (f" ({' and '.join(timed)} loaded together; one engine per "

@@ -49,7 +49,9 @@ def throughput_line(summary) -> str:
     total = summary.latencies_ms.get("total", [])
     if not total:
         return ""
-    how = "reading and projecting the next frame beside the network" if summary.pipelined else "one frame at a time"
+    how = ("reading, projecting and encoding the next frame beside the flow+pose stage" if summary.deep
+           else "reading and projecting the next frame beside the network" if summary.pipelined
+           else "one frame at a time")
     return (f"throughput {summary.throughput:.1f} frames/s ({len(total)} frames in {summary.wall_s:.2f} s, {how}); "
             f"latency per frame median {float(np.median(total)):.1f} ms")
 
@@ -114,9 +116,9 @@ def run_command(
     optimization: str = typer.Option("all", "--optimization", help="Graph optimisation: disable|basic|extended|all."),
     realtime: bool = typer.Option(False, "--realtime", help="Pace frames by their timestamps, like a live sensor."),
     pipeline: bool = typer.Option(False, "--pipeline/--no-pipeline", help="Read and project frame t+1 on a second "
-                                  "thread while the network works on frame t, whose flow+pose stage then takes one thread "
-                                  "fewer (same poses; more frames/s, a little more latency: `d3lvo bench` prints "
-                                  "both rates)."),
+                                  "thread while the network works on frame t (on onnxruntime also complete and encode it "
+                                  "beside the flow+pose stage), which then takes one thread fewer (same poses; more "
+                                  "frames/s, a little more latency: `d3lvo bench` prints both rates)."),
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),
@@ -221,8 +223,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         model_dir = resolve_model_dir(onnx)
         manifest = load_manifest(model_dir, verify_hashes=False)
         frames = (len(seq) if end is None else min(end, len(seq))) - start
-        sc, why = choose_engine(sc.pipelined() if pipeline else sc, manifest, frames)
-        if sc.backend == "openvino" and not openvino_compiled(sc, manifest):
+        sc, why = choose_engine(sc, manifest, frames, pipelined=pipeline)
+        if sc.backend == "openvino" and not openvino_compiled(sc.pipelined() if pipeline else sc, manifest):
             loading = "compiling the model for OpenVINO (the first time on this CPU only; cached for later runs)"
     if viz is not None and (method != "d3lvo" or viz_every < 1):
         raise D3LVOInputError(viz, "--viz shows the network's inputs and outputs: needs --method d3lvo and --viz-every >= 1")
@@ -261,7 +263,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                       optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)
         _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
-                      seq, sc.for_stage("flowpose").engine_threads if method == "d3lvo" else None)
+                      seq, plan)
         if fresh:
             from d3lvo_deploy.results import link_latest
 
@@ -309,8 +311,7 @@ def _name(seq) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
 
 
-def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq,
-                  flowpose_threads: int | None = None) -> None:
+def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, plan=None) -> None:
     import platform
 
     from d3lvo_deploy import __version__
@@ -327,8 +328,9 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq,
                     "python": platform.python_version(), "d3lvo_deploy": __version__},
         "recording": {"frames": len(seq), "pose_frame": seq.frame_label},
     }
-    if flowpose_threads is not None:  # what the flow+pose stage ran on (a pipelined run: one fewer; 0: the engine's choice)
-        tables["machine"]["flowpose_threads"] = flowpose_threads
+    if plan is not None and plan.sc is not None:  # the threads each stage ran on (0: the engine's choice)
+        tables["machine"].update(pipeline_depth=plan.depth, encoder_threads=plan.sc.engine_threads,
+                                 flowpose_threads=plan.sc.for_stage("flowpose").engine_threads)
     folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
                       + to_toml(tables))
 

@@ -99,16 +99,18 @@ class SessionConfig:
         """The settings one stage's session opens with."""
         return replace(self, threads=self.flowpose_threads) if stage == "flowpose" and self.flowpose_threads else self
 
-    def pipelined(self) -> "SessionConfig":
-        """For a two-deep pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of
-        the cores, so that the next frame's reading and preparation (one thread of numpy and
-        OpenCV) run beside it on a core of their own instead of taking turns with its threads: the
-        stage is per-op overhead more than arithmetic, and loses less to one thread fewer than the
-        preparation takes (docs/performance.md)."""
+    def pipelined(self, depth: int = 2) -> "SessionConfig":
+        """For a pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of the
+        cores, so that the reader thread's work runs beside it on a core of its own instead of
+        taking turns with its threads: the stage is per-op overhead more than arithmetic, and loses
+        less to one thread fewer than the reader's work takes (docs/performance.md). `depth` 3:
+        the reader also runs completion and encoder, on that one core."""
         if self.flowpose_threads:
             return self
         n = self.engine_threads or _usable_cores()  # what the engines take when not told
-        return self if n < 2 else replace(self, flowpose_threads=n - 1)
+        if n < 2:
+            return self
+        return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads)
 
     def resolved(self) -> "SessionConfig":
         """The same settings with "auto" replaced by the engine it picks here."""
@@ -146,9 +148,11 @@ AUTO_MIN_FRAMES_CACHED = 60
 AUTO_MIN_FRAMES = 200
 
 
-def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) -> tuple[SessionConfig, str]:
+def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None,
+                  pipelined: bool = False) -> tuple[SessionConfig, str]:
     """The engine a run takes, and why in words (printed by `d3lvo run`). `frames`: the run's
-    length (None: a stream of unknown length, where the faster engine wins in the end)."""
+    length (None: a stream of unknown length, where the faster engine wins in the end);
+    `pipelined`: the run's flow+pose stage is compiled for a pipeline (`SessionConfig.pipelined`)."""
     if sc.backend != AUTO:
         return sc, "asked for"
     if sc.provider != "cpu" or sc.profile_dir is not None:
@@ -158,7 +162,7 @@ def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None) 
     ov = replace(sc, backend="openvino")
     if sc.ov_precision != "f32":
         return ov, f"auto: --ov-precision {sc.ov_precision} is OpenVINO's"
-    cached = manifest is not None and openvino_compiled(ov, manifest)
+    cached = manifest is not None and openvino_compiled(ov.pipelined() if pipelined else ov, manifest)
     if frames is None:
         return ov, "auto: OpenVINO, the faster engine here, for a stream"
     need = AUTO_MIN_FRAMES_CACHED if cached else AUTO_MIN_FRAMES

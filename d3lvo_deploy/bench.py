@@ -74,11 +74,14 @@ class EngineStream:
         if self.sc.profile_dir:
             self.model.end_profiling()
         else:
-            sc = self.sc.pipelined()
-            if sc != self.sc:  # a pipelined run's thread split: the flow+pose stage opened again
-                self.model.reopen("flowpose", sc)
+            depth = 3 if self.model.backend == "onnxruntime" else 2  # as `pipeline.pipeline_depth`
+            sc = self.sc.pipelined(depth)
+            changed = [n for n in self.model.sessions if sc.for_stage(n) != self.sc.for_stage(n)]
+            for stage in changed:  # a pipelined run's threads: those stages opened again
+                self.model.reopen(stage, sc)
+            if changed:
                 warm_up([self], ENGINE_WARMUP)
-            times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs)
+            times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs, depth)
 
 
 def warm_up(streams: list[Callable[[], dict]], frames: int) -> None:
@@ -113,21 +116,30 @@ def bench_engines(model_dir, seq: KittiSequence, scs: list[SessionConfig], runs:
     return times
 
 
-def pipelined_fps(odo: Odometry, frames: list, runs: int) -> float:
-    """Throughput as `d3lvo run` streams: frame t+1 prepared (projection, IP-Basic, solver points)
-    on a second thread while the network works on frame t. Latency per frame is what the stage
-    times add up to; this is how many frames per second pass."""
+def pipelined_fps(odo: Odometry, frames: list, runs: int, depth: int = 2) -> float:
+    """Throughput as `d3lvo run --pipeline` streams: frame t+1 prepared (projection, IP-Basic,
+    solver points) on a second thread while the network works on frame t, and with `depth` 3 also
+    completed and encoded there, beside frame t's flow+pose stage (`pipeline.pipeline_depth`).
+    Latency per frame is what the stage times add up to; this is how many frames per second pass."""
+    def ahead_of(k: int):
+        frame = odo.prepare(*frames[k % len(frames)])
+        return odo.encode_timed(frame) if depth == 3 else frame
+
     with ThreadPoolExecutor(1) as pool:
-        ahead = pool.submit(odo.prepare, *frames[0])
+        ahead = pool.submit(ahead_of, 0)
         t0 = time.perf_counter()
         for k in range(runs):
-            prepared = ahead.result()
+            item = ahead.result()
+            if depth == 3:
+                ahead = pool.submit(ahead_of, k + 1)
+                odo.step_encoded(*item)
+                continue
 
             def read_next(k=k):
                 nonlocal ahead
-                ahead = pool.submit(odo.prepare, *frames[(k + 1) % len(frames)])
+                ahead = pool.submit(ahead_of, k + 1)
 
-            odo.step_prepared(prepared, on_encoded=read_next)
+            odo.step_prepared(item, on_encoded=read_next)
         wall = time.perf_counter() - t0
         ahead.result()
     return runs / wall

@@ -153,6 +153,14 @@ class Odometry:
         return self.encode_prepared(self.prepare(image, points))
 
     def encode_prepared(self, frame: "PreparedFrame") -> dict[str, np.ndarray]:
+        enc, t = self.encode_timed(frame)
+        self.last_timing = FrameTiming(t)
+        return enc
+
+    def encode_timed(self, frame: "PreparedFrame") -> tuple[dict[str, np.ndarray], dict[str, float]]:
+        """`encode_prepared` with its stage times returned rather than kept in `last_timing`: a
+        three-deep pipeline's reader thread encodes frame t+1 with it while this thread runs frame
+        t's flow+pose stage (`step_encoded`)."""
         t = {"project": frame.project_ms}
         t0 = time.perf_counter()
         rgb, inv = frame.rgb, frame.inv
@@ -169,8 +177,7 @@ class Odometry:
         t["encoder"] = (time.perf_counter() - t0) * 1000
         if frame.solver is not None:
             enc["solver_frame"] = frame.solver
-        self.last_timing = FrameTiming(t)
-        return enc
+        return enc, t
 
     def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
@@ -184,6 +191,15 @@ class Odometry:
         enc = self.encode_prepared(frame)
         if on_encoded is not None:
             on_encoded()
+        return self._pose_step(enc)
+
+    def step_encoded(self, enc: dict[str, np.ndarray], times: dict[str, float]) -> np.ndarray:
+        """`step` on a frame a pipeline's reader thread has prepared and encoded (`encode_timed`)."""
+        self.last_timing = FrameTiming(dict(times))
+        return self._pose_step(enc)
+
+    def _pose_step(self, enc: dict[str, np.ndarray]) -> np.ndarray:
+        """The flow+pose half of a step: the pair (previous frame, `enc`), then `enc` is the previous."""
         t0 = time.perf_counter()
         if self._prev is not None:
             out = self._flow_pose(enc)

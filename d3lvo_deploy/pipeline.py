@@ -46,6 +46,7 @@ class RunSummary:
     warnings: list[str] = field(default_factory=list)
     wall_s: float = 0.0  # from the first frame read to the last pose written
     pipelined: bool = False
+    deep: bool = False  # pipelined three deep: the next frame also completed and encoded ahead
 
     @property
     def throughput(self) -> float:
@@ -74,11 +75,12 @@ class RunConfig:
     viz_dir: Path | None = None  # write a picture of what the network sees every `viz_every` frames
     viz_every: int = 10  # also the frames whose images go into the Rerun recording
     rerun_path: Path | None = None  # write a Rerun recording (.rrd) of the run
-    # read and prepare frame t+1 (image, scan, projection, IP-Basic, solver points) on a second
-    # thread while the network works on frame t, the flow+pose stage then one thread short
-    # (`SessionConfig.pipelined`); the poses are the same either way. More frames per second
-    # (on 2 cores a fifth to a quarter more on OpenVINO), each frame's latency a little longer, more on
-    # onnxruntime (docs/performance.md): off by default, the switch for a CPU that falls behind
+    # read and prepare frame t+1 (image, scan, projection, IP-Basic, solver points; on
+    # onnxruntime also completion and encoder: `pipeline_depth`) on a second thread while the
+    # network works on frame t, the flow+pose stage then one thread short (`SessionConfig.pipelined`);
+    # the poses are the same either way. More frames per second (on 2 cores a fifth more on
+    # OpenVINO, two fifths on onnxruntime), each frame's latency a little longer
+    # (docs/performance.md): off by default, the switch for a CPU that falls behind
     pipeline: bool = False
 
 
@@ -162,6 +164,8 @@ class RunPlan:
     out: Path
     n: int
     done: np.ndarray
+    depth: int = 1  # frames in flight: 1 one at a time, 2 or 3 pipelined (`pipeline_depth`)
+    sc: SessionConfig | None = None  # the network's sessions as opened (None: not the network)
 
     @property
     def finished(self) -> bool:
@@ -198,10 +202,25 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
-    if rc.pipeline and odometry is None and model is None and n - len(done) > 1:  # as `execute_run` pipelines
-        sc = sc.pipelined()
+    depth = pipeline_depth(rc, sc, n - len(done), odometry is None)
+    if depth > 1 and odometry is None and model is None:
+        sc = sc.pipelined(depth)
     odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
-    return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done)
+    return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done, depth=depth,
+                   sc=sc if odometry is None else None)
+
+
+def pipeline_depth(rc: RunConfig, sc: SessionConfig, frames: int, network: bool = True) -> int:
+    """How many frames a run has in flight. Pipelined (`rc.pipeline`, more than one frame to go),
+    a reader thread reads and prepares frame t+1 while the network works on frame t (2); on
+    onnxruntime it also runs frame t+1's completion and encoder, beside frame t's flow+pose stage
+    (3), which measured faster there and not on OpenVINO (docs/performance.md), except where the
+    run keeps each frame's tensors for pictures (`--viz`, `--rerun`)."""
+    if not rc.pipeline or frames < 2:
+        return 1
+    pictures = rc.viz_dir is not None or rc.rerun_path is not None
+    deep = network and not pictures and sc.resolved().backend == "onnxruntime"
+    return 3 if deep else 2
 
 
 def run_sequence(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
@@ -240,8 +259,9 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
                 starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * (len(done) - 1) + [odo.motion2]))
         t_wall0 = time.perf_counter()
-        pipelined = rc.pipeline and hasattr(odo, "prepare") and n - len(done) > 1
-        summary.pipelined = pipelined
+        pipelined = plan.depth > 1 and hasattr(odo, "prepare")
+        deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
+        summary.pipelined, summary.deep = pipelined, deep
 
         def load(i: int):
             """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved."""
@@ -254,7 +274,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                                               f"{out}, fix the frame and rerun with --resume") from None
             read_ms = (time.perf_counter() - t0) * 1000
             prepared = odo.prepare(image, points) if pipelined and odo.pre is not None else None
-            return image, points, prepared, read_ms
+            encoded = odo.encode_timed(prepared) if deep and prepared is not None else None
+            return image, points, prepared, encoded, read_ms
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-read") if pipelined else None
         try:
@@ -265,7 +286,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
                     if wait > 0:
                         time.sleep(wait)
-                image, points, prepared, read_ms = ahead.result() if ahead is not None else load(i)
+                image, points, prepared, encoded, read_ms = ahead.result() if ahead is not None else load(i)
                 ahead = None
                 if pictures and hasattr(odo, "keep_outputs"):
                     odo.keep_outputs = j > 0 and (i - rc.start) % rc.viz_every == 0
@@ -275,7 +296,10 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     if pool is not None and j + 1 < n:
                         ahead = pool.submit(load, i + 1)
 
-                if prepared is not None:
+                if encoded is not None:  # only the flow+pose stage left: the reader takes the next frame now
+                    read_next()
+                    pose = odo.step_encoded(*encoded)
+                elif prepared is not None:
                     pose = odo.step_prepared(prepared, on_encoded=read_next)
                 else:
                     pose = odo.step(image, points)

@@ -315,22 +315,27 @@ def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
 
 
 def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, small_synth, tmp_path):
-    """Pipelined, the next frame is read and prepared beside the flow+pose stage: that stage opens
-    with one thread fewer than the cores given, so that the preparation has one of its own; one
-    frame at a time, every stage has them all. One thread leaves nothing to split."""
+    """Pipelined, the reader thread works beside the flow+pose stage: that stage opens with one
+    thread fewer than the cores given, so that the reader has one of its own. Three deep (on
+    onnxruntime, without pictures) the reader also runs completion and encoder, on that one
+    thread; one frame at a time every stage has them all. One thread leaves nothing to split."""
     sc = SessionConfig(threads=2)
     assert sc.pipelined().for_stage("flowpose").engine_threads == 1
     assert sc.pipelined().for_stage("encoder").engine_threads == 2
+    assert sc.pipelined(3).for_stage("encoder").engine_threads == 1
     assert SessionConfig(threads=1).pipelined() == SessionConfig(threads=1)
     assert SessionConfig(threads=4).pipelined().pipelined().for_stage("flowpose").engine_threads == 3
     _, onnx_dir = small_model
     seq = KittiSequence.open(small_synth)
-    for pipeline, solver_threads in ((True, 1), (False, 2)):
-        rc = RunConfig(out=tmp_path / f"{pipeline}.txt", pipeline=pipeline)
+    cases = (("three deep", True, None, 3, 1, 1), ("two deep, pictures", True, tmp_path / "viz", 2, 1, 2),
+             ("one at a time", False, None, 1, 2, 2))
+    for name, pipeline, viz, depth, solver_threads, other_threads in cases:
+        rc = RunConfig(out=tmp_path / f"{depth}.txt", pipeline=pipeline, viz_dir=viz)
         plan = prepare_run(seq, onnx_dir, rc, SessionConfig(threads=2, backend="onnxruntime"))
+        assert plan.depth == depth, name
         threads = {n: s.sess.get_session_options().intra_op_num_threads for n, s in plan.odo.model.sessions.items()}
-        assert threads.pop("flowpose") == solver_threads
-        assert threads and set(threads.values()) == {2}
+        assert threads.pop("flowpose") == solver_threads, name
+        assert threads and set(threads.values()) == {other_threads}, name
 
 
 def test_the_pipelined_split_counts_physical_cores(tmp_path, monkeypatch):

@@ -212,12 +212,20 @@ def test_pipelined_fps_steps_every_frame_in_order_once():
             if on_encoded is not None:
                 on_encoded()
 
-    rec = Recorder()
-    frames = [(k, None) for k in range(4)]
-    fps = pipelined_fps(rec, frames, 6)
-    assert rec.stepped == [0, 1, 2, 3, 0, 1]
-    assert rec.prepared == [0, 1, 2, 3, 0, 1, 2]
-    assert fps > 0
+        def encode_timed(self, frame):
+            return ("encoded", frame), {"encoder": 0.0}
+
+        def step_encoded(self, enc, times):
+            assert enc[0] == "encoded" and times == {"encoder": 0.0}
+            self.stepped.append(enc[1])
+
+    for depth in (2, 3):  # three-deep: each frame also encoded ahead, once
+        rec = Recorder()
+        frames = [(k, None) for k in range(4)]
+        fps = pipelined_fps(rec, frames, 6, depth)
+        assert rec.stepped == [0, 1, 2, 3, 0, 1]
+        assert rec.prepared == [0, 1, 2, 3, 0, 1, 2]
+        assert fps > 0
 
 
 def test_torch_side_times_the_point_solver_model(small_synth):
