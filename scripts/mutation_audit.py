@@ -203,6 +203,10 @@ MUTATIONS = [
              "            sess = open_session(path, sc.for_stage(name), name, st)",
              "            sess = open_session(path, sc, name, st)",
              ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
+    Mutation("a run that keeps each frame's tensors for pictures is pipelined three deep", "d3lvo_deploy/pipeline.py",
+             "    pictures = rc.viz_dir is not None or rc.rerun_path is not None\n    deep =",
+             "    pictures = False\n    deep =",
+             ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
 ]
 
 
