@@ -202,25 +202,27 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
-    depth = pipeline_depth(rc, sc, n - len(done), odometry is None)
-    if depth > 1 and odometry is None and model is None:
+    opens = odometry is None and model is None  # this run opens the network's sessions, split as it pipelines
+    backend = model.backend if model is not None else sc.resolved().backend
+    depth = pipeline_depth(rc, backend, n - len(done), prepares=odometry is None or hasattr(odometry, "prepare"),
+                           splits=opens and sc.pipelined(3) != sc)
+    if depth > 1 and opens:
         sc = sc.pipelined(depth)
     odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
-    return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done, depth=depth,
-                   sc=sc if odometry is None else None)
+    return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done, depth=depth, sc=sc if opens else None)
 
 
-def pipeline_depth(rc: RunConfig, sc: SessionConfig, frames: int, network: bool = True) -> int:
-    """How many frames a run has in flight. Pipelined (`rc.pipeline`, more than one frame to go),
-    a reader thread reads and prepares frame t+1 while the network works on frame t (2); on
-    onnxruntime it also runs frame t+1's completion and encoder, beside frame t's flow+pose stage
-    (3), which measured faster there and not on OpenVINO (docs/performance.md), except where the
-    run keeps each frame's tensors for pictures (`--viz`, `--rerun`)."""
-    if not rc.pipeline or frames < 2:
+def pipeline_depth(rc: RunConfig, backend: str, frames: int, prepares: bool = True, splits: bool = True) -> int:
+    """How many frames a run has in flight. Pipelined (`rc.pipeline`, more than one frame to go, a
+    tracker that prepares frames apart), a reader thread reads and prepares frame t+1 while the
+    network works on frame t (2). On onnxruntime it also runs frame t+1's completion and encoder,
+    on one thread beside frame t's flow+pose stage (3), which measured faster there and not on
+    OpenVINO (docs/performance.md): where the run opens the sessions with that split (`splits`)
+    and does not keep each frame's tensors for pictures (`--viz`, `--rerun`)."""
+    if not rc.pipeline or frames < 2 or not prepares:
         return 1
     pictures = rc.viz_dir is not None or rc.rerun_path is not None
-    deep = network and not pictures and sc.resolved().backend == "onnxruntime"
-    return 3 if deep else 2
+    return 3 if splits and not pictures and backend == "onnxruntime" else 2
 
 
 def run_sequence(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
@@ -259,12 +261,21 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
                 starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * (len(done) - 1) + [odo.motion2]))
         t_wall0 = time.perf_counter()
-        pipelined = plan.depth > 1 and hasattr(odo, "prepare")
+        pipelined = plan.depth > 1
         deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
         summary.pipelined, summary.deep = pipelined, deep
 
+        def wait_for(i: int) -> None:
+            """With --realtime, until frame i would have come from the sensor."""
+            if rc.realtime:
+                wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
+                if wait > 0:
+                    time.sleep(wait)
+
         def load(i: int):
-            """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved."""
+            """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved. A
+            reader thread reading ahead waits for the frame's time, as the sensor would."""
+            wait_for(i)
             t0 = time.perf_counter()
             try:
                 image = seq.image(i)
@@ -282,10 +293,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             ahead = None
             for j in range(len(done), n):
                 i = rc.start + j
-                if rc.realtime:
-                    wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
-                    if wait > 0:
-                        time.sleep(wait)
+                wait_for(i)  # read ahead, the frame has waited there already
                 image, points, prepared, encoded, read_ms = ahead.result() if ahead is not None else load(i)
                 ahead = None
                 if pictures and hasattr(odo, "keep_outputs"):

@@ -336,6 +336,16 @@ def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, 
         threads = {n: s.sess.get_session_options().intra_op_num_threads for n, s in plan.odo.model.sessions.items()}
         assert threads.pop("flowpose") == solver_threads, name
         assert threads and set(threads.values()) == {other_threads}, name
+    # sessions opened by the caller cannot be split: two deep; the direct tracker prepares nothing apart
+    from d3lvo_deploy.direct import DirectOdometry
+
+    given = StageModel(onnx_dir, SessionConfig(threads=2, backend="onnxruntime"))
+    plan = prepare_run(seq, onnx_dir, RunConfig(out=tmp_path / "given.txt", pipeline=True),
+                       SessionConfig(threads=2, backend="onnxruntime"), model=given)
+    assert (plan.depth, plan.sc) == (2, None)
+    plan = prepare_run(seq, None, RunConfig(out=tmp_path / "direct.txt", pipeline=True), SessionConfig(threads=2),
+                       odometry=DirectOdometry(seq.calib))
+    assert plan.depth == 1
 
 
 def test_the_pipelined_split_counts_physical_cores(tmp_path, monkeypatch):

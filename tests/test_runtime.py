@@ -448,13 +448,24 @@ def test_readme_api_example_runs_as_pasted(monkeypatch, capsys):
 
 @pytest.mark.parametrize("backend, how", [("onnxruntime", "encoding the next frame beside the flow+pose stage"),
                                           ("openvino", "projecting the next frame beside the network")])
-def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp_path, backend, how):
+def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp_path, backend, how, monkeypatch):
     """Frame t+1 read and projected on a second thread while the network works on frame t (on
     onnxruntime also completed and encoded there, beside frame t's flow+pose stage): the same
     bytes as one frame at a time, and the output says which it did."""
+    import threading
+
     if backend == "openvino":
         pytest.importorskip("openvino")
     _, onnx_dir = small_model
+    ran_on = {"prepare": set(), "encode_timed": set()}  # the threads each part of a frame ran on
+    for name in ran_on:
+        real = getattr(Odometry, name)
+
+        def spy(self, *args, _real=real, _name=name):
+            ran_on[_name].add(threading.current_thread().name.split("_")[0])
+            return _real(self, *args)
+
+        monkeypatch.setattr(Odometry, name, spy)
     outs = {}
     for flag in ("--pipeline", "--no-pipeline"):
         out = tmp_path / f"{flag}.txt"
@@ -463,6 +474,9 @@ def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp
         assert r.exit_code == 0, r.output
         assert (how in r.output) == (flag == "--pipeline"), r.output
         outs[flag] = out.read_bytes()
+        if flag == "--pipeline":  # the reader prepared frames, and three deep encoded them too
+            assert "d3lvo-read" in ran_on["prepare"]
+            assert ("d3lvo-read" in ran_on["encode_timed"]) == (backend == "onnxruntime")
     assert outs["--pipeline"] == outs["--no-pipeline"]
 
 
