@@ -470,7 +470,7 @@ def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp
     for flag in ("--pipeline", "--no-pipeline"):
         out = tmp_path / f"{flag}.txt"
         r = runner.invoke(app, ["run", str(small_synth), "--onnx", str(onnx_dir), "--out", str(out), "--backend",
-                                backend, flag])
+                                backend, "--threads", "2", flag])  # two threads to split, whatever the test worker has
         assert r.exit_code == 0, r.output
         assert (how in r.output) == (flag == "--pipeline"), r.output
         outs[flag] = out.read_bytes()
