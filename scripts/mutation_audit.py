@@ -204,9 +204,13 @@ MUTATIONS = [
              "            sess = open_session(path, sc, name, st)",
              ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
     Mutation("a run that keeps each frame's tensors for pictures is pipelined three deep", "d3lvo_deploy/pipeline.py",
-             "    pictures = rc.viz_dir is not None or rc.rerun_path is not None\n    deep =",
-             "    pictures = False\n    deep =",
+             "    pictures = rc.viz_dir is not None or rc.rerun_path is not None\n    return 3 if",
+             "    pictures = False\n    return 3 if",
              ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
+    Mutation("a three-deep pipeline leaves the encoding to the main thread after all", "d3lvo_deploy/pipeline.py",
+             "            encoded = odo.encode_timed(prepared) if deep and prepared is not None else None",
+             "            encoded = None",
+             ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
 ]
 
 
