@@ -74,7 +74,8 @@ class EngineStream:
         if self.sc.profile_dir:
             self.model.end_profiling()
         else:
-            depth = 3 if self.model.backend == "onnxruntime" else 2  # as `pipeline.pipeline_depth`
+            # as `pipeline.pipeline_depth`: three deep on onnxruntime where the threads can be split
+            depth = 3 if self.model.backend == "onnxruntime" and self.sc.pipelined(3) != self.sc else 2
             sc = self.sc.pipelined(depth)
             changed = [n for n in self.model.sessions if sc.for_stage(n) != self.sc.for_stage(n)]
             for stage in changed:  # a pipelined run's threads: those stages opened again
