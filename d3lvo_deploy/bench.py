@@ -12,6 +12,7 @@ import numpy as np
 
 from .odometry import Odometry
 from .onnx_model import SessionConfig, StageModel
+from .pipeline import engine_depth
 from .sequence import KittiSequence
 
 BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
@@ -74,12 +75,11 @@ class EngineStream:
         if self.sc.profile_dir:
             self.model.end_profiling()
         else:
-            # as `pipeline.pipeline_depth`: three deep on onnxruntime where the threads can be split
-            depth = 3 if self.model.backend == "onnxruntime" and self.sc.pipelined(3) != self.sc else 2
+            depth = engine_depth(self.model.backend, self.sc.pipelined(3) != self.sc)  # as a run decides
             sc = self.sc.pipelined(depth)
             changed = [n for n in self.model.sessions if sc.for_stage(n) != self.sc.for_stage(n)]
             for stage in changed:  # a pipelined run's threads: those stages opened again
-                self.model.reopen(stage, sc)
+                self.model.open_stage(stage, sc)
             if changed:
                 warm_up([self], ENGINE_WARMUP)
             times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs, depth)

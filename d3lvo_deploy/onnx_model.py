@@ -69,20 +69,17 @@ class StageModel:
         self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
         # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
-        for name, st in self.manifest["stages"].items():
-            st = for_engine(st, self.backend)
-            path = self.dir / st["file"]
-            sess = open_session(path, sc.for_stage(name), name, st)
-            self._check_io(path, sess, st)
-            self.sessions[name] = sess
+        for name in self.manifest["stages"]:
+            self.open_stage(name, sc)
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
         self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
         self.geometric = "init_pose" in self.input_names("flowpose")
 
-    def reopen(self, stage: str, sc: SessionConfig) -> None:
-        """Opens `stage` again with other session settings on the same engine (the bench's
-        pipelined stream: `SessionConfig.pipelined`)."""
+    def open_stage(self, stage: str, sc: SessionConfig) -> None:
+        """Opens `stage`'s session on this model's engine with `sc`'s settings for it, checked
+        against the manifest; again, with other settings, for the bench's pipelined stream
+        (`SessionConfig.pipelined`)."""
         st = for_engine(self.manifest["stages"][stage], self.backend)
         path = self.dir / st["file"]
         sess = open_session(path, replace(sc, backend=self.backend).for_stage(stage), stage, st)

@@ -222,7 +222,13 @@ def pipeline_depth(rc: RunConfig, backend: str, frames: int, prepares: bool = Tr
     if not rc.pipeline or frames < 2 or not prepares:
         return 1
     pictures = rc.viz_dir is not None or rc.rerun_path is not None
-    return 3 if splits and not pictures and backend == "onnxruntime" else 2
+    return 2 if pictures else engine_depth(backend, splits)
+
+
+def engine_depth(backend: str, splits: bool) -> int:
+    """A pipeline's depth on an engine (`pipeline_depth`, the bench's pipelined rate): three where
+    it measured faster, onnxruntime, and the sessions' threads can be split; else two."""
+    return 3 if splits and backend == "onnxruntime" else 2
 
 
 def run_sequence(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
@@ -265,17 +271,14 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
         summary.pipelined, summary.deep = pipelined, deep
 
-        def wait_for(i: int) -> None:
-            """With --realtime, until frame i would have come from the sensor."""
+        def load(i: int):
+            """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved. With
+            --realtime it waits for the frame's time first, on a reader thread reading ahead too, as
+            from a live sensor."""
             if rc.realtime:
                 wait = (seq.times[i] - seq.times[rc.start + len(done)]) - (time.perf_counter() - t_wall0)
                 if wait > 0:
                     time.sleep(wait)
-
-        def load(i: int):
-            """Read frame i (and, pipelined, prepare it); a bad file says which poses are saved. A
-            reader thread reading ahead waits for the frame's time, as the sensor would."""
-            wait_for(i)
             t0 = time.perf_counter()
             try:
                 image = seq.image(i)
@@ -293,7 +296,6 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             ahead = None
             for j in range(len(done), n):
                 i = rc.start + j
-                wait_for(i)  # read ahead, the frame has waited there already
                 image, points, prepared, encoded, read_ms = ahead.result() if ahead is not None else load(i)
                 ahead = None
                 if pictures and hasattr(odo, "keep_outputs"):
