@@ -95,6 +95,16 @@ class SessionConfig:
         except ValueError:
             return 0
 
+    @property
+    def prepare_threads(self) -> int:
+        """Threads of a frame's CPU half (`Odometry.prepare`): two where the engines have two cores
+        or more, so that the solver's points are picked beside the network's inputs (a third less
+        time, docs/performance.md); one in a pipeline, whose reader thread has one core beside
+        the network (`pipelined`)."""
+        if self.flowpose_threads:
+            return 1
+        return 2 if (self.engine_threads or _usable_cores()) >= 2 else 1
+
     def for_stage(self, stage: str) -> "SessionConfig":
         """The settings one stage's session opens with."""
         return replace(self, threads=self.flowpose_threads) if stage == "flowpose" and self.flowpose_threads else self

@@ -123,7 +123,7 @@ def pipelined_fps(odo: Odometry, frames: list, runs: int, depth: int = 2) -> flo
     completed and encoded there, beside frame t's flow+pose stage (`pipeline.pipeline_depth`).
     Latency per frame is what the stage times add up to; this is how many frames per second pass."""
     def ahead_of(k: int):
-        frame = odo.prepare(*frames[k % len(frames)])
+        frame = odo.prepare(*frames[k % len(frames)], threads=1)  # one core beside the network, as a run's reader
         return odo.encode_timed(frame) if depth == 3 else frame
 
     with ThreadPoolExecutor(1) as pool:

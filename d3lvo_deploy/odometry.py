@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import time
 import warnings
+import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -21,8 +24,8 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
 from .onnx_model import SessionConfig, StageModel, camera_inputs
-from .points import SCAN_DEPTH_INPUT, SolverFrame, point_config, solver_feeds
-from .projection import PROJECTION_MIN_DEPTH, rows_in_view
+from .points import SCAN_DEPTH_INPUT, SolverFrame, finest_and_points, point_config, solver_feeds
+from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 
@@ -87,6 +90,8 @@ class Odometry:
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
         self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
+        self.prepare_threads = sc.prepare_threads
+        self._helper: ThreadPoolExecutor | None = None  # `prepare`'s second thread, started on first use
         self.reset()
 
     @property
@@ -122,30 +127,46 @@ class Odometry:
                                         f"{self.pre.view.src_width}x{self.pre.view.src_height}")
         return self.pre
 
-    def prepare(self, image: np.ndarray, points: np.ndarray | None) -> "PreparedFrame":
+    def prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int | None = None) -> "PreparedFrame":
         """The CPU half of a frame, before any network: RGB input, LiDAR projection and IP-Basic,
         the solver's points. Independent of the previous frame, so a pipeline runs it for frame
         t+1 on another thread while the network works on frame t (after the first frame, which
-        fixes the view)."""
+        fixes the view), with `threads` 1. With 2 (default: `prepare_threads`) the solver's
+        points are picked on a second thread beside the network's inputs; the same arrays either way."""
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
-            return self._prepare(image, points)
+            return self._prepare(image, points, self.prepare_threads if threads is None else threads)
 
-    def _prepare(self, image: np.ndarray, points: np.ndarray | None) -> "PreparedFrame":
+    def _beside(self, job: Callable[[], Any], threads: int) -> Callable[[], Any]:
+        """Starts `job` on the helper thread where `threads` > 1 (else runs it now); returns what
+        gives its result. numpy and OpenCV release the GIL, so both threads compute."""
+        if threads < 2:
+            result = job()
+            return lambda: result
+        if self._helper is None:
+            self._helper = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-prepare")
+            weakref.finalize(self, self._helper.shutdown, wait=False)
+        return self._helper.submit(job).result
+
+    def _prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int) -> "PreparedFrame":
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
-        rgb = pre.rgb_input(image)
         scan = clean_scan(points) if self.model.depth_input != "none" else None
+        h, w = image.shape[:2]
         if scan is not None and len(scan):  # one cull for both passes below (`rows_in_view`)
-            h, w = image.shape[:2]
             scan = rows_in_view(scan, self.calib.P_velo_to_image2, w, h,
                                 min(PROJECTION_MIN_DEPTH, self.points.min_depth if self.points is not None else np.inf))
+        textured = None
+        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
+            textured = self._beside(partial(finest_and_points, image, scan, self.calib.T_cam2_velo, self.calib.K2,
+                                            self.points), threads)
+        rgb = pre.rgb_input(image)
         inv = pre.invdepth_input(scan)
         solver = None
-        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
-            solver = SolverFrame.of(image, scan, self.calib.T_cam2_velo, self.calib.K2, self.points,
-                                    self.pyramid_levels, self.calib.P_velo_to_image2 if self.takes_depth else None)
+        if textured is not None:
+            depth = sparse_depth(scan, self.calib.P_velo_to_image2, w, h) if self.takes_depth else None
+            solver = SolverFrame.assemble(*textured(), self.pyramid_levels, depth)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
 
     def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:

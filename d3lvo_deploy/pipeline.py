@@ -287,7 +287,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
                                               f"{out}, fix the frame and rerun with --resume") from None
             read_ms = (time.perf_counter() - t0) * 1000
-            prepared = odo.prepare(image, points) if pipelined and odo.pre is not None else None
+            # one thread: this reader has one core beside the network
+            prepared = odo.prepare(image, points, threads=1) if pipelined and odo.pre is not None else None
             encoded = odo.encode_timed(prepared) if deep and prepared is not None else None
             return image, points, prepared, encoded, read_ms
 

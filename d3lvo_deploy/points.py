@@ -174,12 +174,23 @@ class SolverFrame:
     def of(cls, image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
            cfg: PointConfig, levels: int = 0, depth_P: np.ndarray | None = None) -> "SolverFrame":
         """depth_P: the 3x4 LiDAR-to-pixel matrix where the graph takes the frame's LiDAR depth."""
-        stack = np.empty((3, *image.shape[:2]), np.float32)  # the finest level: grey, d/du, d/dv
-        grey = grey_image(image, stack[0])
-        grads = gradients(grey, stack[1:])
-        points = textured_points(scan, T_cam_velo, K, grey, cfg, grads)
-        depth = None if depth_P is None else sparse_depth(scan, depth_P, grey.shape[1], grey.shape[0])
-        return cls(grey, points, solver_pyramid(grey, levels, stack) if levels else None, depth)
+        stack, points = finest_and_points(image, scan, T_cam_velo, K, cfg)
+        depth = None if depth_P is None else sparse_depth(scan, depth_P, image.shape[1], image.shape[0])
+        return cls.assemble(stack, points, levels, depth)
+
+    @classmethod
+    def assemble(cls, stack: np.ndarray, points: np.ndarray, levels: int, depth: np.ndarray | None) -> "SolverFrame":
+        """The frame from `finest_and_points` and its LiDAR depth (where the graph takes it)."""
+        return cls(stack[0], points, solver_pyramid(stack[0], levels, stack) if levels else None, depth)
+
+
+def finest_and_points(image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
+                      cfg: PointConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(3, H, W) float32 finest level (grey, d/du, d/dv) and the textured points (`textured_points`):
+    the larger part of a solver frame, which `Odometry.prepare` runs beside the network's inputs."""
+    stack = np.empty((3, *image.shape[:2]), np.float32)
+    grey = grey_image(image, stack[0])
+    return stack, textured_points(scan, T_cam_velo, K, grey, cfg, gradients(grey, stack[1:]))
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:

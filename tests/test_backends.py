@@ -336,6 +336,9 @@ def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, 
         threads = {n: s.sess.get_session_options().intra_op_num_threads for n, s in plan.odo.model.sessions.items()}
         assert threads.pop("flowpose") == solver_threads, name
         assert threads and set(threads.values()) == {other_threads}, name
+        # a frame's CPU half on two threads only where no reader runs it beside the network
+        assert plan.odo.prepare_threads == (1 if pipeline else 2), name
+    assert SessionConfig(threads=1).prepare_threads == 1
     # sessions opened by the caller cannot be split: two deep; the direct tracker prepares nothing apart
     from d3lvo_deploy.direct import DirectOdometry
 

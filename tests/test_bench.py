@@ -203,7 +203,8 @@ def test_pipelined_fps_steps_every_frame_in_order_once():
         def __init__(self):
             self.prepared, self.stepped = [], []
 
-        def prepare(self, image, points):
+        def prepare(self, image, points, threads=None):
+            assert threads == 1  # the reader thread has one core beside the network, as a run's
             self.prepared.append(image)
             return image
 

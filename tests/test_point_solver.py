@@ -678,6 +678,31 @@ def test_runtime_feeds_frame_ts_own_scan():
     assert not np.array_equal(prev.depth, cur.depth)
 
 
+def test_prepare_on_two_threads_gives_the_same_frame(monkeypatch):
+    """With two threads, `prepare` picks the solver's points on its helper thread beside the
+    network's inputs; every array is the one the single-threaded preparation gives."""
+    import threading
+
+    from d3lvo_deploy import odometry
+    from d3lvo_deploy.bundled import bundled_model_dir
+
+    seq = _real_pair()
+    odo = odometry.Odometry(bundled_model_dir(), seq.calib)
+    where, real = [], odometry.finest_and_points
+
+    def spy(*args):
+        where.append(threading.current_thread().name)
+        return real(*args)
+
+    monkeypatch.setattr(odometry, "finest_and_points", spy)
+    one, two = (odo.prepare(seq.image(6), seq.scan(6), threads=n) for n in (1, 2))
+    assert where[0] == threading.current_thread().name and where[1].startswith("d3lvo-prepare")
+    assert len(one.solver.points) > 1000
+    for a, b in ((one.rgb, two.rgb), (one.inv, two.inv), (one.solver.points, two.solver.points),
+                 (one.solver.depth, two.solver.depth), *zip(one.solver.pyramid, two.solver.pyramid)):
+        assert np.array_equal(a, b)
+
+
 def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     """`scan_depth2` is a flow+pose input where the finest level's restart runs (on more than one
     level) and the check is on; a config that checks with the restart off (what `--set

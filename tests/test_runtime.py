@@ -461,9 +461,9 @@ def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp
     for name in ran_on:
         real = getattr(Odometry, name)
 
-        def spy(self, *args, _real=real, _name=name):
+        def spy(self, *args, _real=real, _name=name, **kwargs):
             ran_on[_name].add(threading.current_thread().name.split("_")[0])
-            return _real(self, *args)
+            return _real(self, *args, **kwargs)
 
         monkeypatch.setattr(Odometry, name, spy)
     outs = {}
