@@ -6,12 +6,12 @@ frame t-1 of the next pair. Poses are cam0 poses (KITTI convention), first frame
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -24,7 +24,7 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
 from .onnx_model import SessionConfig, StageModel, camera_inputs
-from .points import SCAN_DEPTH_INPUT, SolverFrame, finest_and_points, point_config, solver_feeds
+from .points import SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 STAGES = ("project", "completion", "encoder", "flowpose")
@@ -139,11 +139,12 @@ class Odometry:
             return self._prepare(image, points, self.prepare_threads if threads is None else threads)
 
     def _beside(self, job: Callable[[], Any], threads: int) -> Callable[[], Any]:
-        """Starts `job` on the helper thread where `threads` > 1 (else runs it now); returns what
-        gives its result. numpy and OpenCV release the GIL, so both threads compute."""
+        """What gives `job`'s result: with `threads` > 1 the job starts now on the helper thread
+        (numpy and OpenCV release the GIL, so both threads compute; jobs run in the order given,
+        so a job may wait for an earlier one); with one thread it runs when its result is first
+        asked for."""
         if threads < 2:
-            result = job()
-            return lambda: result
+            return functools.cache(job)
         if self._helper is None:
             self._helper = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-prepare")
             weakref.finalize(self, self._helper.shutdown, wait=False)
@@ -152,22 +153,28 @@ class Odometry:
     def _prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int) -> "PreparedFrame":
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
+        # the solver's finest level (the camera's grey image and its gradients) needs no scan: it
+        # starts at once, beside the scan's cull
+        finest = self._beside(functools.partial(finest_level, image), threads) if self.model.point_solver else None
         scan = clean_scan(points) if self.model.depth_input != "none" else None
         h, w = image.shape[:2]
         if scan is not None and len(scan):  # one cull for both passes below (`rows_in_view`)
             scan = rows_in_view(scan, self.calib.P_velo_to_image2, w, h,
                                 min(PROJECTION_MIN_DEPTH, self.points.min_depth if self.points is not None else np.inf))
         textured = None
-        if self.model.point_solver:  # the camera's grey image and the textured returns, for the solver
-            textured = self._beside(partial(finest_and_points, image, scan, self.calib.T_cam2_velo, self.calib.K2,
-                                            self.points), threads)
+        if finest is not None:  # the textured returns, beside the network's inputs
+            textured = self._beside(functools.partial(self._textured, finest, scan), threads)
         rgb = pre.rgb_input(image)
         inv = pre.invdepth_input(scan)
         solver = None
         if textured is not None:
             depth = sparse_depth(scan, self.calib.P_velo_to_image2, w, h) if self.takes_depth else None
-            solver = SolverFrame.assemble(*textured(), self.pyramid_levels, depth)
+            solver = SolverFrame.assemble(finest(), textured(), self.pyramid_levels, depth)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
+
+    def _textured(self, finest: Callable[[], np.ndarray], scan: np.ndarray) -> np.ndarray:
+        stack = finest()
+        return textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, stack[0], self.points, (stack[1], stack[2]))
 
     def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
         """Frame -> encoder outputs (the per-frame half of the work)."""

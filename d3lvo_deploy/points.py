@@ -174,23 +174,24 @@ class SolverFrame:
     def of(cls, image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
            cfg: PointConfig, levels: int = 0, depth_P: np.ndarray | None = None) -> "SolverFrame":
         """depth_P: the 3x4 LiDAR-to-pixel matrix where the graph takes the frame's LiDAR depth."""
-        stack, points = finest_and_points(image, scan, T_cam_velo, K, cfg)
+        stack = finest_level(image)
+        points = textured_points(scan, T_cam_velo, K, stack[0], cfg, (stack[1], stack[2]))
         depth = None if depth_P is None else sparse_depth(scan, depth_P, image.shape[1], image.shape[0])
         return cls.assemble(stack, points, levels, depth)
 
     @classmethod
     def assemble(cls, stack: np.ndarray, points: np.ndarray, levels: int, depth: np.ndarray | None) -> "SolverFrame":
-        """The frame from `finest_and_points` and its LiDAR depth (where the graph takes it)."""
+        """The frame from its finest level (`finest_level`), its textured points and its LiDAR depth
+        (where the graph takes it)."""
         return cls(stack[0], points, solver_pyramid(stack[0], levels, stack) if levels else None, depth)
 
 
-def finest_and_points(image: np.ndarray, scan: np.ndarray, T_cam_velo: np.ndarray, K: np.ndarray,
-                      cfg: PointConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(3, H, W) float32 finest level (grey, d/du, d/dv) and the textured points (`textured_points`):
-    the larger part of a solver frame, which `Odometry.prepare` runs beside the network's inputs."""
+def finest_level(image: np.ndarray) -> np.ndarray:
+    """(3, H, W) float32: the camera image's grey in [0, 1] and its d/du, d/dv (`gradients`), the
+    solver pyramid's finest level, from which `textured_points` picks the points."""
     stack = np.empty((3, *image.shape[:2]), np.float32)
-    grey = grey_image(image, stack[0])
-    return stack, textured_points(scan, T_cam_velo, K, grey, cfg, gradients(grey, stack[1:]))
+    gradients(grey_image(image, stack[0]), stack[1:])
+    return stack
 
 
 def solver_feeds(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, capacity: int) -> dict[str, np.ndarray]:

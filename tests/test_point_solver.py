@@ -679,8 +679,9 @@ def test_runtime_feeds_frame_ts_own_scan():
 
 
 def test_prepare_on_two_threads_gives_the_same_frame(monkeypatch):
-    """With two threads, `prepare` picks the solver's points on its helper thread beside the
-    network's inputs; every array is the one the single-threaded preparation gives."""
+    """With two threads, `prepare` makes the solver's finest level and picks its points on its
+    helper thread beside the scan's cull and the network's inputs; every array is the one the
+    single-threaded preparation gives."""
     import threading
 
     from d3lvo_deploy import odometry
@@ -688,15 +689,18 @@ def test_prepare_on_two_threads_gives_the_same_frame(monkeypatch):
 
     seq = _real_pair()
     odo = odometry.Odometry(bundled_model_dir(), seq.calib)
-    where, real = [], odometry.finest_and_points
+    where = []
+    for name in ("finest_level", "textured_points"):
+        def spy(*args, _real=getattr(odometry, name), _name=name):
+            where.append((_name, threading.current_thread().name))
+            return _real(*args)
 
-    def spy(*args):
-        where.append(threading.current_thread().name)
-        return real(*args)
-
-    monkeypatch.setattr(odometry, "finest_and_points", spy)
+        monkeypatch.setattr(odometry, name, spy)
     one, two = (odo.prepare(seq.image(6), seq.scan(6), threads=n) for n in (1, 2))
-    assert where[0] == threading.current_thread().name and where[1].startswith("d3lvo-prepare")
+    here = threading.current_thread().name
+    assert where[:2] == [("finest_level", here), ("textured_points", here)]
+    assert [n for n, _ in where[2:]] == ["finest_level", "textured_points"]
+    assert all(t.startswith("d3lvo-prepare") for _, t in where[2:])
     assert len(one.solver.points) > 1000
     for a, b in ((one.rgb, two.rgb), (one.inv, two.inv), (one.solver.points, two.solver.points),
                  (one.solver.depth, two.solver.depth), *zip(one.solver.pyramid, two.solver.pyramid)):
