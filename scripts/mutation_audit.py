@@ -193,8 +193,9 @@ MUTATIONS = [
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",)),
     Mutation("frames prepared with numpy's BLAS threads left free", "d3lvo_deploy/odometry.py",
              "        with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)\n"
-             "            return self._prepare(image, points)",
-             "        return self._prepare(image, points)",
+             "            return self._prepare(",
+             "        if True:\n"
+             "            return self._prepare(",
              ("tests/test_runtime.py::test_frame_preparation_holds_blas_to_one_thread",)),
     Mutation("OpenVINO's solver steps take the rotation Jacobian's third row with the wrong sign", "models/point_solver.py",
              "zt * au - x * az, x * av - y * au, nr]", "zt * au - x * az, y * au - x * av, nr]",
@@ -210,6 +211,17 @@ MUTATIONS = [
     Mutation("a three-deep pipeline leaves the encoding to the main thread after all", "d3lvo_deploy/pipeline.py",
              "            encoded = odo.encode_timed(prepared) if deep and prepared is not None else None",
              "            encoded = None",
+             ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
+    Mutation("a frame's CPU half stays on one thread when two are asked for", "d3lvo_deploy/odometry.py",
+             "        if threads < 2:\n            return functools.cache(job)",
+             "        if True:\n            return functools.cache(job)",
+             ("tests/test_point_solver.py::test_prepare_on_two_threads_gives_the_same_frame",)),
+    Mutation("a pipelined run prepares frames on two threads beside the network", "d3lvo_deploy/backends.py",
+             "        if self.flowpose_threads:\n            return 1\n",
+             "",
+             ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
+    Mutation("a pipeline's reader prepares on the Odometry's own thread count", "d3lvo_deploy/pipeline.py",
+             "odo.prepare(image, points, threads=1)", "odo.prepare(image, points)",
              ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
 ]
 

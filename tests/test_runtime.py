@@ -462,7 +462,10 @@ def test_pipelined_run_writes_the_sequential_poses(small_model, small_synth, tmp
         real = getattr(Odometry, name)
 
         def spy(self, *args, _real=real, _name=name, **kwargs):
-            ran_on[_name].add(threading.current_thread().name.split("_")[0])
+            thread = threading.current_thread().name.split("_")[0]
+            ran_on[_name].add(thread)
+            if _name == "prepare" and thread == "d3lvo-read":  # one core beside the network: one thread
+                assert kwargs.get("threads") == 1
             return _real(self, *args, **kwargs)
 
         monkeypatch.setattr(Odometry, name, spy)
