@@ -92,6 +92,8 @@ def bench_command(
     height: int | None = typer.Option(None, "--height", help="Export --ckpt at this height; without --ckpt, time the default network (D3LVOConfig()) at this size."),
     width: int | None = typer.Option(None, "--width", help="... and this width (e.g. --height 352 --width 1216)."),
     threads: int = typer.Option(2, "--threads", help="Threads for every engine and torch."),
+    prepare_threads: int = typer.Option(0, "--prepare-threads", help="Threads of each frame's CPU half (the project "
+                                        "row): 1 or 2 (default: as `d3lvo run` decides, 2 from two cores up)."),
     runs: int = typer.Option(20, "--runs", help="Timed frames after warm-up."),
     seq_dir: Path | None = typer.Option(None, "--seq-dir", help="Frames to run on (default: real frames, else synthetic)."),
     backend: str | None = typer.Option(None, "--backend", help="Engines to time, comma-separated: onnxruntime, "
@@ -124,6 +126,8 @@ def bench_command(
 
     if runs < 1:
         raise D3LVOInputError(None, "--runs must be at least 1")
+    if prepare_threads not in (0, 1, 2):
+        raise D3LVOInputError(None, f"--prepare-threads must be 1 or 2, not {prepare_threads}")
     if (height is None) != (width is None):
         raise D3LVOInputError(None, "give --height and --width together")
     if height is not None and onnx is not None:
@@ -201,7 +205,8 @@ def bench_command(
         pipelined: dict[str, float | None] = {}
         top_ops = None
         scs = [SessionConfig(threads=threads, backend=b, ov_precision=ov_precision if b == "openvino" else "f32",
-                             profile_dir=str(profile) if profile and b == "onnxruntime" else None) for b in engines]
+                             profile_dir=str(profile) if profile and b == "onnxruntime" else None,
+                             prepare_threads=prepare_threads) for b in engines]
         frames = bench_frames(seq)
         with console.status(f"loading {', '.join(engines)}"):
             streams = {b: EngineStream(onnx, seq, sc, frames) for b, sc in zip(engines, scs)}
@@ -232,6 +237,7 @@ def bench_command(
         "model": str(onnx), "timed": what, "size": f"{manifest['input']['width']}x{manifest['input']['height']}",
         "precision": manifest.get("precision", "fp32"), "flow_levels": manifest["model_config"]["flow_levels"],
         "threads": SessionConfig(threads=threads).engine_threads, "runs": runs, "frames_from": str(seq.root),
+        "prepare_threads": scs[0].preparing_threads,
         "ov_precision": ov_precision if "openvino" in engines else None,
         "cpu": {"model": cpu.model, "cores": cpu.logical_cores, "isa": list(cpu.isa)},
         "gemm_peak_gflops": peak, "stage_gflops": gflops,
@@ -275,8 +281,9 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
     out.print(f"model: {res['timed']}", highlight=False)
     out.print(f"CPU: {cpu.line()}; numpy SGEMM peak {res['gemm_peak_gflops']:.0f} GFLOP/s", highlight=False)
     ovp = f", OpenVINO {res['ov_precision']}" if res.get("ov_precision") not in (None, "f32") else ""
-    t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads, {res['runs']} frames ({res['precision']}{ovp}), "
-                    "ms per frame")
+    prep = res.get("prepare_threads", 1)
+    t = Table(title=f"d3lvo bench: {res['size']}, {res['threads']} threads (project {prep}), {res['runs']} frames "
+                    f"({res['precision']}{ovp}), ms per frame")
     t.add_column("stage", justify="right")
     t.add_column("GFLOP", justify="right")
     for b in timed:

@@ -330,7 +330,8 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, 
     }
     if plan is not None and plan.sc is not None:  # the threads each stage ran on (0: the engine's choice)
         tables["machine"].update(pipeline_depth=plan.depth, encoder_threads=plan.sc.engine_threads,
-                                 flowpose_threads=plan.sc.for_stage("flowpose").engine_threads)
+                                 flowpose_threads=plan.sc.for_stage("flowpose").engine_threads,
+                                 prepare_threads=plan.sc.preparing_threads)
     folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
                       + to_toml(tables))
 

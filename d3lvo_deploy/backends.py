@@ -82,6 +82,8 @@ class SessionConfig:
     # threads of the flow+pose stage alone (0: as the others). A pipelined run gives it one fewer
     # than the machine has (`pipelined`)
     flowpose_threads: int = 0
+    # threads of a frame's CPU half (`Odometry.prepare`); 0: `preparing_threads` decides
+    prepare_threads: int = 0
 
     @property
     def engine_threads(self) -> int:
@@ -96,18 +98,20 @@ class SessionConfig:
             return 0
 
     @property
-    def prepare_threads(self) -> int:
-        """Threads of a frame's CPU half (`Odometry.prepare`): two where the engines have two cores
-        or more, so that the solver's points are picked beside the network's inputs (a third less
-        time, docs/performance.md); one in a pipeline, whose reader thread has one core beside
-        the network (`pipelined`)."""
-        if self.flowpose_threads:
-            return 1
+    def preparing_threads(self) -> int:
+        """Threads of a frame's CPU half (`Odometry.prepare`): `prepare_threads` where set, else
+        two where the engines have two cores or more, so that the solver's frame is made beside
+        the network's inputs (docs/performance.md). A pipeline sets one: its reader thread has
+        one core beside the network (`pipelined`)."""
+        if self.prepare_threads:
+            return self.prepare_threads
         return 2 if (self.engine_threads or _usable_cores()) >= 2 else 1
 
     def for_stage(self, stage: str) -> "SessionConfig":
-        """The settings one stage's session opens with."""
-        return replace(self, threads=self.flowpose_threads) if stage == "flowpose" and self.flowpose_threads else self
+        """The settings one stage's session opens with (and nothing else: two runs whose stage
+        settings are equal share the stage's session, compiled graph and cache)."""
+        threads = self.flowpose_threads if stage == "flowpose" and self.flowpose_threads else self.threads
+        return replace(self, threads=threads, flowpose_threads=0, prepare_threads=0)
 
     def pipelined(self, depth: int = 2) -> "SessionConfig":
         """For a pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of the
@@ -120,7 +124,7 @@ class SessionConfig:
         n = self.engine_threads or _usable_cores()  # what the engines take when not told
         if n < 2:
             return self
-        return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads)
+        return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads, prepare_threads=1)
 
     def resolved(self) -> "SessionConfig":
         """The same settings with "auto" replaced by the engine it picks here."""

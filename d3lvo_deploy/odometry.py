@@ -90,7 +90,7 @@ class Odometry:
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
         self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
-        self.prepare_threads = sc.prepare_threads
+        self.prepare_threads = sc.preparing_threads
         self._helper: ThreadPoolExecutor | None = None  # `prepare`'s second thread, started on first use
         self.reset()
 

@@ -338,7 +338,8 @@ def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, 
         assert threads and set(threads.values()) == {other_threads}, name
         # a frame's CPU half on two threads only where no reader runs it beside the network
         assert plan.odo.prepare_threads == (1 if pipeline else 2), name
-    assert SessionConfig(threads=1).prepare_threads == 1
+    assert SessionConfig(threads=1).preparing_threads == 1
+    assert SessionConfig(threads=2, prepare_threads=1).preparing_threads == 1  # `d3lvo bench --prepare-threads`
     # sessions opened by the caller cannot be split: two deep; the direct tracker prepares nothing apart
     from d3lvo_deploy.direct import DirectOdometry
 

@@ -63,9 +63,10 @@ def test_stage_times_summary_by_hand():
 def test_cli_bench_json(small_model, small_synth):
     ck, onnx_dir = small_model
     r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "3",
-                            "--threads", "1", "--json", "--backend", "onnxruntime"])
+                            "--threads", "1", "--json", "--backend", "onnxruntime", "--prepare-threads", "2"])
     assert r.exit_code == 0, r.output
     d = json.loads(r.stdout)
+    assert d["prepare_threads"] == 2  # asked for, though one engine thread alone would give 1
     for key in ("total_ms_median", "ort_over_torch", "rss_mb", "fps", "stages_ms", "torch_stages_ms"):
         assert key in d
     # the total's median is the median of the per-frame sums, not the sum of the stage medians
@@ -163,6 +164,8 @@ def test_cli_bench_precision_errors(small_model):
     assert r.exit_code == 1 and "needs --ckpt or --height/--width" in r.output
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "int4"])
     assert r.exit_code == 1 and "fp32, fp16 or int8" in r.output
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--prepare-threads", "3"])
+    assert r.exit_code == 1 and "--prepare-threads must be 1 or 2" in r.output
 
 
 def test_engines_take_turns_in_blocks_each_on_its_own_consecutive_frames(small_model, small_synth, monkeypatch):
