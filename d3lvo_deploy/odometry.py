@@ -90,8 +90,10 @@ class Odometry:
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
         self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
-        self.prepare_threads = sc.preparing_threads
-        self._helper: ThreadPoolExecutor | None = None  # `prepare`'s second thread, started on first use
+        self.prepare_threads = sc.preparing_threads  # `prepare`'s threads (the session setting resolved)
+        # `prepare`'s second thread: started by the first job given to it, ended with this object
+        self._helper = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-prepare")
+        weakref.finalize(self, self._helper.shutdown, wait=False)
         self.reset()
 
     @property
@@ -131,8 +133,9 @@ class Odometry:
         """The CPU half of a frame, before any network: RGB input, LiDAR projection and IP-Basic,
         the solver's points. Independent of the previous frame, so a pipeline runs it for frame
         t+1 on another thread while the network works on frame t (after the first frame, which
-        fixes the view), with `threads` 1. With 2 (default: `prepare_threads`) the solver's
-        points are picked on a second thread beside the network's inputs; the same arrays either way."""
+        fixes the view), with `threads` 1. With 2 (`threads` defaults to `self.prepare_threads`,
+        from `SessionConfig.preparing_threads`) the solver's frame is made on a second thread
+        beside the network's inputs; the same arrays either way."""
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
@@ -145,18 +148,15 @@ class Odometry:
         asked for."""
         if threads < 2:
             return functools.cache(job)
-        if self._helper is None:
-            self._helper = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-prepare")
-            weakref.finalize(self, self._helper.shutdown, wait=False)
         return self._helper.submit(job).result
 
     def _prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int) -> "PreparedFrame":
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
+        scan = clean_scan(points) if self.model.depth_input != "none" else None  # checked before any job starts
         # the solver's finest level (the camera's grey image and its gradients) needs no scan: it
         # starts at once, beside the scan's cull
         finest = self._beside(functools.partial(finest_level, image), threads) if self.model.point_solver else None
-        scan = clean_scan(points) if self.model.depth_input != "none" else None
         h, w = image.shape[:2]
         if scan is not None and len(scan):  # one cull for both passes below (`rows_in_view`)
             scan = rows_in_view(scan, self.calib.P_velo_to_image2, w, h,

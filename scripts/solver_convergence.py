@@ -87,16 +87,18 @@ def track(seq, cfg: DirectConfig) -> np.ndarray:
 
 
 def report(steps: dict, iterations: tuple[int, ...]) -> None:
-    for (width, solves), cap in zip(sorted(steps.items()), reversed(iterations)):
+    for (width, solves), cap in zip(sorted(steps.items()), iterations):  # both coarse to fine
         counts = np.array([len(s) for s in solves])
         at = [np.median([np.abs(s[j - 1]).max() for s in solves if len(s) >= j]) if counts.max() >= j else np.nan
               for j in AT]
+        # from the third step on: the first steps of a level still turn as the threshold settles
         cosines = [np.median([a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-30) for a, b in zip(s[2:], s[3:])])
                    for s in solves if len(s) > 3]
+        cosine = f"{np.median(cosines):.2f}" if cosines else "n/a (no solve took four steps)"
         print(f"level {width} px wide: {len(solves)} solves, {counts.mean():.1f} steps on average, "
               f"{(counts == cap).mean():.0%} take all {cap}; median step at "
               + ", ".join(f"{j}: {x:.0e}" for j, x in zip(AT, at))
-              + f"; median cosine of consecutive steps {np.median(cosines):.2f}")
+              + f"; median cosine of consecutive steps from the third on {cosine}")
 
 
 def main() -> None:

@@ -340,6 +340,8 @@ def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, 
         assert plan.odo.prepare_threads == (1 if pipeline else 2), name
     assert SessionConfig(threads=1).preparing_threads == 1
     assert SessionConfig(threads=2, prepare_threads=1).preparing_threads == 1  # `d3lvo bench --prepare-threads`
+    # a stage's settings are what opens its session: two deep, completion and encoder open as one at a time
+    assert SessionConfig(threads=2).pipelined().for_stage("encoder") == SessionConfig(threads=2).for_stage("encoder")
     # sessions opened by the caller cannot be split: two deep; the direct tracker prepares nothing apart
     from d3lvo_deploy.direct import DirectOdometry
 

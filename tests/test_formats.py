@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -225,6 +226,8 @@ def test_results_folder_holds_the_run_and_its_config_repeats_it(tmp_path, monkey
     assert lat["frames"] == 3 and len(lat["per_frame_total"]) == 3
     cfg = (first / "config.toml").read_text()
     assert 'backend = "onnxruntime"' in cfg and "manifest_sha256" in cfg and "cpu = " in cfg
+    machine = tomllib.loads(cfg)["machine"]  # the threads the run's stages and its frames' preparation took
+    assert machine["pipeline_depth"] == 1 and machine["prepare_threads"] in (1, 2)
 
     r = runner.invoke(app, ["run", "--config", str(first / "config.toml")])
     assert r.exit_code == 0, r.output
