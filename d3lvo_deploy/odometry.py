@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import time
 import warnings
-import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -91,9 +90,9 @@ class Odometry:
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
         self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
         self.prepare_threads = sc.preparing_threads  # `prepare`'s threads (the session setting resolved)
-        # `prepare`'s second thread: started by the first job given to it, ended with this object
+        # `prepare`'s second thread: started by the first job given to it; it ends when the
+        # executor is collected with this object
         self._helper = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-prepare")
-        weakref.finalize(self, self._helper.shutdown, wait=False)
         self.reset()
 
     @property

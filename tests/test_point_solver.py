@@ -707,6 +707,31 @@ def test_prepare_on_two_threads_gives_the_same_frame(monkeypatch):
         assert np.array_equal(a, b)
 
 
+def test_the_preparing_thread_ends_with_its_odometry():
+    """`prepare`'s helper thread belongs to its Odometry: once the object is gone, so is the thread
+    (a process that opens trackers one after another does not collect idle threads)."""
+    import gc
+    import threading
+    import weakref
+
+    from d3lvo_deploy import odometry
+    from d3lvo_deploy.bundled import bundled_model_dir
+
+    seq = _real_pair()
+    before = set(threading.enumerate())  # other trackers of this process keep theirs
+    odo = odometry.Odometry(bundled_model_dir(), seq.calib)
+    odo.prepare(seq.image(6), seq.scan(6), threads=2)
+    helpers = [t for t in set(threading.enumerate()) - before if t.name.startswith("d3lvo-prepare")]
+    assert len(helpers) == 1
+    gone = weakref.ref(odo)
+    del odo
+    gc.collect()
+    assert gone() is None
+    for t in helpers:
+        t.join(timeout=10)
+    assert not any(t.is_alive() for t in helpers)
+
+
 def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     """`scan_depth2` is a flow+pose input where the finest level's restart runs (on more than one
     level) and the check is on; a config that checks with the restart off (what `--set
