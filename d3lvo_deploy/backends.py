@@ -98,6 +98,11 @@ class SessionConfig:
             return 0
 
     @property
+    def threads_taken(self) -> int:
+        """The threads the engines take: `engine_threads`, else one per physical core."""
+        return self.engine_threads or _usable_cores()
+
+    @property
     def preparing_threads(self) -> int:
         """Threads of a frame's CPU half (`Odometry.prepare`): `prepare_threads` where set, else
         two where the engines have two cores or more, so that the solver's frame is made beside
@@ -105,7 +110,7 @@ class SessionConfig:
         one core beside the network (`pipelined`)."""
         if self.prepare_threads:
             return self.prepare_threads
-        return 2 if (self.engine_threads or _usable_cores()) >= 2 else 1
+        return 2 if self.threads_taken >= 2 else 1
 
     def for_stage(self, stage: str) -> "SessionConfig":
         """The settings one stage's session opens with (and nothing else: two runs whose stage
@@ -121,7 +126,7 @@ class SessionConfig:
         the reader also runs completion and encoder, on that one core."""
         if self.flowpose_threads:
             return self
-        n = self.engine_threads or _usable_cores()  # what the engines take when not told
+        n = self.threads_taken
         if n < 2:
             return self
         return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads, prepare_threads=1)
