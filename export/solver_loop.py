@@ -22,7 +22,7 @@ from onnx import TensorProto, helper, numpy_helper
 from torch import nn
 
 from models.point_solver import LOOP_DOMAIN, LOOP_OP, SolverSettings, gn_steps
-from models.sampling import inside_lattice
+from models.sampling import gathering, inside_lattice
 
 BODY_INPUTS = ("P", "active", "Xh", "ref", "stack", "G", "f", "weight", "w_ok", "median_mask", "half", "last_cell",
                "row_map", "offsets")
@@ -136,11 +136,16 @@ def _used(nodes: list, graph: onnx.GraphProto) -> list:
     return kept[::-1]
 
 
+# the blocks exported so far in this process, by everything that shapes one (the placeholder's
+# settings, the opset, the batch axis and the sampling layout): each costs a full torch export, and
+# a model's two graphs and its re-exports with other solver settings mostly share them
+_BLOCKS: dict[tuple, onnx.GraphProto] = {}
+
+
 def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onnx.ModelProto:
     """Every placeholder node -> Loop(max trips, true, P, active) over a block of its settings'
     steps; drops the placeholder's opset import, so that the graph holds standard ops only."""
     nodes = []
-    blocks: dict[tuple, onnx.GraphProto] = {}
     loops = 0
     for node in model.graph.node:
         if not _is_placeholder(node):
@@ -151,15 +156,16 @@ def splice_loops(model: onnx.ModelProto, opset: int, dynamic_batch: bool) -> onn
         images = a.get("images", batch)
         affine = bool(a.get("affine", 0))
         stride = a.get("stride", 1)
-        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images, affine, stride)
-        if key not in blocks:
+        key = (a["block"], a["stop"], a["damping"], a["capacity"], batch, images, affine, stride, opset,
+               dynamic_batch, gathering())
+        if key not in _BLOCKS:
             s = SolverSettings(stop_step=a["stop"], damping=a["damping"], scale_every=a["block"], affine=affine,
                                median_stride=stride)
-            blocks[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch, images)
+            _BLOCKS[key] = block_graph(s, a["capacity"], opset, dynamic_batch, batch, images)
         trips = a["trips"]
         prefix = f"gn_loop{loops}/"
         loops += 1
-        body = _renamed_body(blocks[key], list(node.input[CARRIED:]), prefix)
+        body = _renamed_body(_BLOCKS[key], list(node.input[CARRIED:]), prefix)
         nodes += [helper.make_node("Constant", [], [prefix + "trips"], value=helper.make_tensor(
                       prefix + "trips", TensorProto.INT64, [], [trips])),
                   helper.make_node("Constant", [], [prefix + "start"], value=helper.make_tensor(

@@ -210,6 +210,11 @@ class _GaussNewtonLoop(torch.autograd.Function):
     @staticmethod
     def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
                 offsets, trips: int, s: SolverSettings, capacity: int, batch: int, images: int):
+        if torch.onnx.is_in_onnx_export():
+            # the exporter traces this body and then discards it for `symbolic`'s node: tracing
+            # every step (thousands of ops per level) made most of an export's time, and the
+            # graph, whose nodes never see the traced values, is the same byte for byte
+            return P.clone(), active.clone()
         for _ in range(trips):
             P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell,
                                  row_map, offsets, s.scale_every, s)
