@@ -91,7 +91,8 @@ def _reference_step(M, X, f1, f2, weight, K, huber, damping, max_rot, max_trans)
         return torch.stack([fx * Xt[:, 0] / Xt[:, 2] + cx, fy * Xt[:, 1] / Xt[:, 2] + cy], -1)
 
     xi0 = torch.zeros(6, dtype=X.dtype)
-    Jp = torch.autograd.functional.jacobian(pixels, xi0)  # (N,2,6)
+    # forward mode: 6 inputs, 2N outputs (reverse mode would take one backward pass per output)
+    Jp = torch.autograd.functional.jacobian(pixels, xi0, vectorize=True, strategy="forward-mode")  # (N,2,6)
     uv = pixels(xi0)
     gu = torch.from_numpy(np.gradient(f2[0].numpy(), axis=2))[None]
     gv = torch.from_numpy(np.gradient(f2[0].numpy(), axis=1))[None]
