@@ -223,6 +223,9 @@ MUTATIONS = [
     Mutation("a pipeline's reader prepares on the Odometry's own thread count", "d3lvo_deploy/pipeline.py",
              "odo.prepare(image, points, threads=1)", "odo.prepare(image, points)",
              ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
+    Mutation("the export reuses a solver block across the two graphs' sampling layouts", "export/solver_loop.py",
+             "               dynamic_batch, gathering())", "               dynamic_batch)",
+             ("tests/test_point_solver.py::test_each_engines_graph_loops_over_its_own_steps",)),
 ]
 
 

@@ -789,6 +789,23 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
             np.testing.assert_allclose(both, np.stack(alone), atol=1e-5)
 
 
+def test_each_engines_graph_loops_over_its_own_steps(points_model):
+    """The solver's Loop bodies follow their graph's layout: OpenVINO's samples with GridSample and
+    eliminates (it cannot convert Det), onnxruntime's gathers pixel rows and takes one Det; every level's
+    Loop in a graph runs the same kind of body. The export reuses a body across graphs and
+    exports only where everything that shapes it matches (`export/solver_loop.py`)."""
+    from export.onnx_export import all_nodes
+
+    _, onnx_dir = points_model
+    want = {"flowpose.onnx": ({"GridSample"}, {"Det"}), "flowpose.onnxruntime.onnx": ({"Det"}, {"GridSample"})}
+    for graph, (present, absent) in want.items():
+        loops = [n for n in onnx.load(str(onnx_dir / graph)).graph.node if n.op_type == "Loop"]
+        assert len(loops) == 3, graph  # one per pyramid level
+        for loop in loops:
+            ops = {n.op_type for n in all_nodes(loop.attribute[0].g)}
+            assert present <= ops and not ops & absent, (graph, loop.name, sorted(ops & (present | absent)))
+
+
 def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_path):
     """`pt_select_rotation` as exported, in a dynamic batch of two pairs, against torch. With a
     confidence that varies strongly over the image (the fixture's last confidence layer redrawn at
