@@ -45,9 +45,28 @@ def solver_settings(pairs: list[str]) -> dict:
     return out
 
 
+def _check_conversion(onnx_dir: Path, out: Path, precision: str, export_options: list[str]) -> None:
+    """--onnx converts a folder as it was exported: an fp32 one, into another folder, with no export
+    option (the folder fixed its size, opset, batch axis and solver)."""
+    from d3lvo_deploy.manifest import load_manifest
+
+    if precision == "fp32":
+        raise D3LVOInputError(onnx_dir, "--onnx converts an exported folder to --precision fp16 or int8; "
+                                        "it is fp32 already")
+    if export_options:
+        raise D3LVOInputError(onnx_dir, f"--onnx converts the folder as it was exported; {export_options[0]} needs --ckpt")
+    m = load_manifest(onnx_dir)
+    if m.get("precision", "fp32") != "fp32":
+        raise D3LVOInputError(onnx_dir, f"holds an {m['precision']} model; --onnx converts an fp32 export")
+    if out.resolve() == onnx_dir.resolve():
+        raise D3LVOInputError(out, "is the --onnx folder itself; write the converted model to another folder")
+
+
 @friendly_errors
 def export_command(
-    ckpt: Path = typer.Option(..., "--ckpt", help="D3LVO checkpoint (from `d3lvo train`)."),
+    ckpt: Path | None = typer.Option(None, "--ckpt", help="D3LVO checkpoint (from `d3lvo train`)."),
+    onnx_dir: Path | None = typer.Option(None, "--onnx", help="Instead of --ckpt: an fp32 model folder from "
+                                         "`d3lvo export` to convert with --precision fp16|int8."),
     out: Path = typer.Option(..., "--out", help="Output folder for the .onnx files and manifest.json."),
     opset: int = typer.Option(17, "--opset", help="ONNX opset (16+: GridSample)."),
     height: int | None = typer.Option(None, "--height", help="Input height (default: the checkpoint's)."),
@@ -63,7 +82,8 @@ def export_command(
 ) -> None:
     """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed.
 
-    Example: d3lvo export --ckpt runs/points.pt --out my_model   (then d3lvo run DRIVE --onnx my_model)
+    Example: d3lvo export --ckpt runs/points.pt --out my_model   (then d3lvo run DRIVE --onnx my_model);
+    d3lvo export --onnx my_model --precision int8 --out my_model_int8   (no second export)
     """
     import tempfile
 
@@ -74,12 +94,21 @@ def export_command(
 
     if precision not in ("fp32", "fp16", "int8"):
         raise D3LVOInputError(None, f"--precision must be fp32, fp16 or int8, not {precision!r}")
+    if (ckpt is None) == (onnx_dir is None):
+        raise D3LVOInputError(None, "give either --ckpt (a checkpoint to export) or --onnx (an fp32 model folder "
+                                    "to convert with --precision fp16|int8)")
+    if onnx_dir is not None:
+        given = [name for name, value, default in (("--opset", opset, 17), ("--height", height, None),
+                                                   ("--width", width, None), ("--dynamic-batch", dynamic_batch, False),
+                                                   ("--set", solver, [])) if value != default]
+        _check_conversion(onnx_dir, out, precision, given)
     with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
-        fp32_dir = out if precision == "fp32" else Path(tmpd) / "fp32"
-        with console.status("exporting"):
-            m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
-                                                     dynamic_batch=dynamic_batch, solver=solver_settings(solver)),
-                                  progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
+        fp32_dir = onnx_dir or (out if precision == "fp32" else Path(tmpd) / "fp32")
+        if ckpt is not None:
+            with console.status("exporting"):
+                m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
+                                                         dynamic_batch=dynamic_batch, solver=solver_settings(solver)),
+                                      progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
         if precision != "fp32":
             from export.quantize import quantize_folder
 

@@ -87,6 +87,29 @@ def test_parity_other_modes(tmp_path, small_synth, kw):
     assert rep.passed, rep.to_dict()
 
 
+def test_export_converts_only_an_fp32_folder_as_exported(small_model, tmp_path):
+    """`d3lvo export --onnx DIR --precision P`: a reduced-precision copy of an fp32 export, no
+    checkpoint needed; anything that would need a new export, or would overwrite or re-convert
+    the folder, is one line naming what is wrong."""
+    ck, fp32_dir = small_model
+    fp16 = tmp_path / "fp16"
+    r = runner.invoke(app, ["export", "--onnx", str(fp32_dir), "--out", str(fp16), "--precision", "fp16"])
+    assert r.exit_code == 0, r.output
+    assert load_manifest(fp16)["precision"] == "fp16"
+    cases = [(["--onnx", str(fp32_dir), "--out", str(tmp_path / "a")], "fp32 already"),
+             (["--onnx", str(fp16), "--out", str(tmp_path / "b"), "--precision", "int8"], "holds an fp16 model"),
+             (["--onnx", str(fp32_dir), "--out", str(tmp_path / "c"), "--precision", "fp16", "--width", "256"],
+              "--width needs --ckpt"),
+             (["--onnx", str(fp32_dir), "--out", str(fp32_dir), "--precision", "fp16"], "the --onnx folder itself"),
+             (["--onnx", str(tmp_path / "none"), "--out", str(tmp_path / "d"), "--precision", "fp16"], "no manifest.json"),
+             (["--out", str(tmp_path / "e"), "--precision", "fp16"], "either --ckpt"),
+             (["--ckpt", str(ck), "--onnx", str(fp32_dir), "--out", str(tmp_path / "f")], "either --ckpt")]
+    for args, message in cases:
+        r = runner.invoke(app, ["export", *args])
+        assert r.exit_code != 0 and message in r.output and "Traceback" not in r.output, (args, r.output)
+    assert not any((tmp_path / x).exists() for x in "abcdef")  # nothing written on a refusal
+
+
 def test_dynamic_batch(tmp_path):
     ck, cfg = _ckpt(tmp_path)
     export_checkpoint(ck, ExportConfig(out=tmp_path / "onnx", dynamic_batch=True))
@@ -239,7 +262,10 @@ def test_reduced_precision_exports(small_model, small_synth, tmp_path, precision
 
     ck, fp32_dir = small_model
     out = tmp_path / precision
-    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(out), "--precision", precision,
+    # fp16 from the checkpoint (exported, then converted); int8 from the fp32 folder exported before,
+    # converted as it is (`--onnx`): both paths end in the same conversion
+    source = ["--ckpt", str(ck)] if precision == "fp16" else ["--onnx", str(fp32_dir)]
+    r = runner.invoke(app, ["export", *source, "--out", str(out), "--precision", precision,
                             "--calib-seq", str(small_synth)])
     assert r.exit_code == 0, r.output
     m = load_manifest(out)
