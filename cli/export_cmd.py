@@ -1,4 +1,5 @@
-"""`d3lvo export`: per-stage ONNX graphs plus manifest.json from a checkpoint."""
+"""`d3lvo export`: per-stage ONNX graphs plus manifest.json from a checkpoint, or a reduced-precision
+copy of such a folder."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import typer
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import graph_files
 
-from .common import console, friendly_errors
+from .common import console, friendly_errors, given_on_command_line
 
 
 def default_calibration(tmp: Path) -> list[Path]:
@@ -51,19 +52,23 @@ def _check_conversion(onnx_dir: Path, out: Path, precision: str, export_options:
     from d3lvo_deploy.manifest import load_manifest
 
     if precision == "fp32":
-        raise D3LVOInputError(onnx_dir, "--onnx converts an exported folder to --precision fp16 or int8; "
-                                        "it is fp32 already")
+        raise D3LVOInputError(None, "--onnx converts an exported folder: it needs --precision fp16 or int8")
     if export_options:
         raise D3LVOInputError(onnx_dir, f"--onnx converts the folder as it was exported; {export_options[0]} needs --ckpt")
     m = load_manifest(onnx_dir)
     if m.get("precision", "fp32") != "fp32":
         raise D3LVOInputError(onnx_dir, f"holds an {m['precision']} model; --onnx converts an fp32 export")
+    missing = [k for k in ("model_config", "depth_input", "input", "opset") if k not in m]
+    if missing:
+        raise D3LVOInputError(onnx_dir / "manifest.json", f"has no {missing[0]!r}: re-export the checkpoint with "
+                                                          "`d3lvo export`")
     if out.resolve() == onnx_dir.resolve():
         raise D3LVOInputError(out, "is the --onnx folder itself; write the converted model to another folder")
 
 
 @friendly_errors
 def export_command(
+    ctx: typer.Context,
     ckpt: Path | None = typer.Option(None, "--ckpt", help="D3LVO checkpoint (from `d3lvo train`)."),
     onnx_dir: Path | None = typer.Option(None, "--onnx", help="Instead of --ckpt: an fp32 model folder from "
                                          "`d3lvo export` to convert with --precision fp16|int8."),
@@ -98,9 +103,8 @@ def export_command(
         raise D3LVOInputError(None, "give either --ckpt (a checkpoint to export) or --onnx (an fp32 model folder "
                                     "to convert with --precision fp16|int8)")
     if onnx_dir is not None:
-        given = [name for name, value, default in (("--opset", opset, 17), ("--height", height, None),
-                                                   ("--width", width, None), ("--dynamic-batch", dynamic_batch, False),
-                                                   ("--set", solver, [])) if value != default]
+        given = [f"--{name.replace('_', '-')}" for name in ("opset", "height", "width", "dynamic_batch")
+                 if given_on_command_line(ctx, name)] + (["--set"] if given_on_command_line(ctx, "solver") else [])
         _check_conversion(onnx_dir, out, precision, given)
     with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
         fp32_dir = onnx_dir or (out if precision == "fp32" else Path(tmpd) / "fp32")

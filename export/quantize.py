@@ -85,17 +85,17 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
     manifest = load_manifest(fp32_dir)
     if precision not in ("fp16", "int8"):
         raise D3LVOInputError(None, f"--precision must be fp32, fp16 or int8, not {precision!r}")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise D3LVOInputError(out_dir, f"output folder is not writable ({e.strerror})") from None
-    if precision == "int8":
+    if precision == "int8":  # before the output folder: a bad calibration sequence leaves nothing behind
         from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
         from onnxruntime.quantization.shape_inference import quant_pre_process
 
         if not calib_seqs:
             raise D3LVOInputError(None, "INT8 needs calibration frames (--calib-seq DIR)")
         feeds = calibration_feeds(fp32_dir, calib_seqs)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise D3LVOInputError(out_dir, f"output folder is not writable ({e.strerror})") from None
     for name, st in manifest["stages"].items():
         src, dst = fp32_dir / st["file"], out_dir / st["file"]
         stage_precision = precision

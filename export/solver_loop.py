@@ -136,9 +136,10 @@ def _used(nodes: list, graph: onnx.GraphProto) -> list:
     return kept[::-1]
 
 
-# the blocks exported so far in this process, by everything that shapes one (the placeholder's
-# settings, the opset, the batch axis and the sampling layout): each costs a full torch export, and
-# a model's two graphs and its re-exports with other solver settings mostly share them
+# the blocks exported so far in this process (read only), by everything that shapes one (the
+# placeholder's settings, the opset, the batch axis and the sampling layout): each costs a torch
+# export, and a model's levels and its later exports in one process (other solver settings, the
+# tests, `d3lvo bench --ckpt`) share them
 _BLOCKS: dict[tuple, onnx.GraphProto] = {}
 
 

@@ -210,10 +210,12 @@ class _GaussNewtonLoop(torch.autograd.Function):
     @staticmethod
     def forward(ctx, P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell, row_map,
                 offsets, trips: int, s: SolverSettings, capacity: int, batch: int, images: int):
-        if torch.onnx.is_in_onnx_export():
-            # the exporter traces this body and then discards it for `symbolic`'s node: tracing
-            # every step (thousands of ops per level) made most of an export's time, and the
-            # graph, whose nodes never see the traced values, is the same byte for byte
+        if torch.onnx.is_in_onnx_export() and torch.jit.is_tracing():
+            # the TorchScript exporter traces this body, then puts `symbolic`'s node in its place:
+            # tracing every step (thousands of ops per level) made most of an export's time. The
+            # trace keeps only the outputs' shapes and dtypes, which P and active have, so the graph
+            # is the same byte for byte; nothing after the solver may branch on tensor values in
+            # Python (the trace runs on the unsolved pose)
             return P.clone(), active.clone()
         for _ in range(trips):
             P, active = gn_steps(P, active, Xh, ref, stack, G, f, weight, w_ok, median_mask, half, last_cell,

@@ -96,18 +96,23 @@ def test_export_converts_only_an_fp32_folder_as_exported(small_model, tmp_path):
     r = runner.invoke(app, ["export", "--onnx", str(fp32_dir), "--out", str(fp16), "--precision", "fp16"])
     assert r.exit_code == 0, r.output
     assert load_manifest(fp16)["precision"] == "fp16"
-    cases = [(["--onnx", str(fp32_dir), "--out", str(tmp_path / "a")], "fp32 already"),
+    cases = [(["--onnx", str(fp32_dir), "--out", str(tmp_path / "a")], "needs --precision fp16 or int8"),
              (["--onnx", str(fp16), "--out", str(tmp_path / "b"), "--precision", "int8"], "holds an fp16 model"),
              (["--onnx", str(fp32_dir), "--out", str(tmp_path / "c"), "--precision", "fp16", "--width", "256"],
               "--width needs --ckpt"),
+             (["--onnx", str(fp32_dir), "--out", str(tmp_path / "c"), "--precision", "fp16", "--opset", "17"],
+              "--opset needs --ckpt"),
              (["--onnx", str(fp32_dir), "--out", str(fp32_dir), "--precision", "fp16"], "the --onnx folder itself"),
              (["--onnx", str(tmp_path / "none"), "--out", str(tmp_path / "d"), "--precision", "fp16"], "no manifest.json"),
              (["--out", str(tmp_path / "e"), "--precision", "fp16"], "either --ckpt"),
              (["--ckpt", str(ck), "--onnx", str(fp32_dir), "--out", str(tmp_path / "f")], "either --ckpt")]
+    before = {f.name: f.read_bytes() for f in fp32_dir.iterdir() if f.is_file()}
     for args, message in cases:
         r = runner.invoke(app, ["export", *args])
-        assert r.exit_code != 0 and message in r.output and "Traceback" not in r.output, (args, r.output)
-    assert not any((tmp_path / x).exists() for x in "abcdef")  # nothing written on a refusal
+        assert r.exit_code == 1 and message in r.output and isinstance(r.exception, SystemExit), (args, r.output)
+    # nothing written on a refusal, the --onnx folder left as it was
+    assert not any((tmp_path / x).exists() for x in "abcdef")
+    assert {f.name: f.read_bytes() for f in fp32_dir.iterdir() if f.is_file()} == before
 
 
 def test_dynamic_batch(tmp_path):

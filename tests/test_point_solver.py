@@ -792,8 +792,8 @@ def test_dynamic_batch_solves_each_pair_as_alone(points_model, tmp_path, select,
 def test_each_engines_graph_loops_over_its_own_steps(points_model):
     """The solver's Loop bodies follow their graph's layout: OpenVINO's samples with GridSample and
     eliminates (it cannot convert Det), onnxruntime's gathers pixel rows and takes one Det; every level's
-    Loop in a graph runs the same kind of body. The export reuses a body across graphs and
-    exports only where everything that shapes it matches (`export/solver_loop.py`)."""
+    Loop in a graph runs the same kind of body. The export reuses a body exported before only
+    where everything that shapes it matches, the layout included (`export/solver_loop.py`)."""
     from export.onnx_export import all_nodes
 
     _, onnx_dir = points_model
