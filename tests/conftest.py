@@ -140,6 +140,20 @@ def small_model(tmp_path_factory) -> tuple[Path, Path]:
 
 
 @pytest.fixture(scope="session")
+def points_model(tmp_path_factory):
+    """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 6 Gauss-Newton steps per
+    level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
+    constant-velocity start still converge on the test drive's small motions. With the finest
+    level's restart from the start, as the bundled model, so that its graphs are tested too."""
+    from export.onnx_export import ExportConfig, export_checkpoint
+
+    d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
+        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6), pt_fine_restart=0.001),
+        ExportConfig(out=d / "onnx")))
+    return d / "ck.pt", d / "onnx"
+
+
+@pytest.fixture(scope="session")
 def traffic_clip(tmp_path_factory) -> Path:
     """8 frames at 416x128 with 6 vehicles per 100 m, LiDAR without range noise or dropout (the
     geometry checks are exact)."""

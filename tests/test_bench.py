@@ -93,8 +93,10 @@ def test_cli_bench_against_another_folder_times_both_in_turns(small_model, small
     assert r.exit_code != 0 and str(tmp_path) in r.output and "Traceback" not in r.output
 
 
-def test_cli_bench_from_checkpoint(small_model, small_synth):
-    ck, _ = small_model
+def test_cli_bench_from_checkpoint(points_model, small_synth):
+    """`--ckpt`: exported first, then timed; on the point head's model, what the bundled model
+    runs (and half the export time of the cell solver's, whose steps are unrolled)."""
+    ck, _ = points_model
     r = runner.invoke(app, ["bench", "--ckpt", str(ck), "--seq-dir", str(small_synth), "--runs", "2", "--no-torch",
                             "--backend", "onnxruntime"])
     assert r.exit_code == 0, r.output

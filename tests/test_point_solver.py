@@ -597,21 +597,6 @@ def test_consensus_gain_is_the_numpy_trackers():
     assert direct.consensus_gain(prev, cur, tracked, rest) > 0.02  # the tracked motion explains the pair better
 
 
-@pytest.fixture(scope="session")
-def points_model(tmp_path_factory):
-    """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 6 Gauss-Newton steps per
-    level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
-    constant-velocity start still converge on the test drive's small motions. With the finest
-    level's restart from the start, as the bundled model, so that its graphs are tested too."""
-    from conftest import built_once, make_checkpoint
-    from export.onnx_export import ExportConfig, export_checkpoint
-
-    d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
-        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6), pt_fine_restart=0.001),
-        ExportConfig(out=d / "onnx")))
-    return d / "ck.pt", d / "onnx"
-
-
 def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_path):
     """The exported graph, fed by the torch-free runtime at the camera's own size (620x188, traced
     at another), gives torch's trajectory; both follow the rendered motion to within 3 % per pair."""
