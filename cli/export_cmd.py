@@ -55,13 +55,9 @@ def _check_conversion(onnx_dir: Path, out: Path, precision: str, export_options:
         raise D3LVOInputError(None, "--onnx converts an exported folder: it needs --precision fp16 or int8")
     if export_options:
         raise D3LVOInputError(onnx_dir, f"--onnx converts the folder as it was exported; {export_options[0]} needs --ckpt")
-    m = load_manifest(onnx_dir)
+    m = load_manifest(onnx_dir, verify_hashes=False)  # `quantize_folder` checks the hashes, before it writes
     if m.get("precision", "fp32") != "fp32":
         raise D3LVOInputError(onnx_dir, f"holds an {m['precision']} model; --onnx converts an fp32 export")
-    missing = [k for k in ("model_config", "depth_input", "input", "opset") if k not in m]
-    if missing:
-        raise D3LVOInputError(onnx_dir / "manifest.json", f"has no {missing[0]!r}: re-export the checkpoint with "
-                                                          "`d3lvo export`")
     if out.resolve() == onnx_dir.resolve():
         raise D3LVOInputError(out, "is the --onnx folder itself; write the converted model to another folder")
 

@@ -69,6 +69,9 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
     if m.get("version") != MANIFEST_VERSION:
         raise D3LVOInputError(path, f"manifest version {m.get('version')}, this runtime reads {MANIFEST_VERSION}: "
                                     "re-export the checkpoint with `d3lvo export`")
+    missing = [k for k in ("model_config", "depth_input", "input", "opset") if k not in m]
+    if missing:  # what the runtime and the reduced-precision conversion read
+        raise D3LVOInputError(path, f"has no {missing[0]!r}: re-export the checkpoint with `d3lvo export`")
     stages = m.get("stages", {})
     for name in ("encoder", "flowpose"):
         if name not in stages:

@@ -162,6 +162,11 @@ def test_tampered_and_mismatched(exported, tmp_path):
     (bad / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(D3LVOInputError, match="flowpose.*no sha256"):
         StageModel(bad)
+    m = json.loads((out / "manifest.json").read_text())
+    del m["model_config"]  # a hand-edited manifest: one line naming the key, not a KeyError later
+    (bad / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(D3LVOInputError, match="manifest.json: has no 'model_config'"):
+        StageModel(bad)
     other, _ = _ckpt(tmp_path, name="other.pt", mode="rgb")
     with pytest.raises(D3LVOInputError, match="another model config"):
         run_parity(other, out, frames=2)
