@@ -354,10 +354,12 @@ def test_full_precision_keeps_the_solver_in_fp32_under_autocast():
 def test_train_config_file_round_trips_through_checkpoint_and_export(small_synth, tmp_path):
     """--config FILE.toml: [model] fields and [train]/[loss]/[augment] options reach the
     checkpoint; the OUT.toml written beside it repeats the run; export reads the checkpoint's
-    configuration; an unknown key or a bad value is one line naming it."""
+    configuration (at fp16: exported, then converted); an unknown key or a bad value is one line naming it."""
     import json
 
     from typer.testing import CliRunner
+
+    from d3lvo_deploy.manifest import graph_files, load_manifest
 
     from cli.main import app
 
@@ -398,10 +400,14 @@ flip = 0.0
     # repeating without --out would overwrite the first run's checkpoint: refused, naming it
     r = runner.invoke(app, ["train", "--config", str(tmp_path / "a.toml")])
     assert r.exit_code == 1 and "exists already" in r.output and "--resume" in r.output, r.output
-    r = runner.invoke(app, ["export", "--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "onnx")])
+    # exported at reduced precision straight from the checkpoint: fp32 first, then converted
+    r = runner.invoke(app, ["export", "--ckpt", str(tmp_path / "a.pt"), "--out", str(tmp_path / "onnx"),
+                            "--precision", "fp16"])
     assert r.exit_code == 0, r.output
-    manifest = json.loads((tmp_path / "onnx" / "manifest.json").read_text())
+    manifest = load_manifest(tmp_path / "onnx")
     assert manifest["model_config"]["feature_widths"] == [16, 32, 32, 48]
+    assert manifest["precision"] == "fp16" and manifest["stages"]["encoder"]["precision"] == "fp16"
+    assert sorted(p.name for p in (tmp_path / "onnx").iterdir()) == sorted([*graph_files(manifest), "manifest.json"])
     for text, words in (("[model]\nwidht = 3\n", "[model] unknown key 'widht'"),
                         ("[model]\nflow_levels = [1, 2]\n", "flow_levels must run coarse to fine"),
                         ("[train]\nsteps = 'many'\n", "[train] steps = 'many'"),
