@@ -145,8 +145,8 @@ def points_model(tmp_path_factory):
     level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
     constant-velocity start still converge on the test drive's small motions. With the finest
     level's restart from the start, as the bundled model, so that its graphs are tested too.
-    Exported with a dynamic batch: the runtime feeds it batches of one, the batched tests more,
-    from the one export."""
+    Exported with a dynamic batch: the runtime feeds it batches of one, the batched test two
+    pairs, from the one export."""
     from export.onnx_export import ExportConfig, export_checkpoint
 
     d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(

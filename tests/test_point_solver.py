@@ -737,7 +737,8 @@ def test_the_scan_is_an_input_only_where_a_restart_checks_it():
                                                    pt_restart_depth=0.5).to_dict()).restart_depth == 0.5
 
 
-# pt_select without pt_refine, pair by pair in a batch: test_rotation_gate_in_the_exported_graphs_pair_by_pair
+# pt_select pair by pair in a batch, with pt_refine 2 (whose steps run on the same doubled rows the
+# select alone runs on): test_rotation_gate_in_the_exported_graphs_pair_by_pair
 def test_dynamic_batch_solves_each_pair_as_alone(points_model):
     """With --dynamic-batch the solver's Loops run while any pair of the batch still moves: a batch
     of two pairs (different start motions, so their levels stop at different blocks) gives each

@@ -357,13 +357,10 @@ def test_train_config_file_round_trips_through_checkpoint_and_export(small_synth
     """--config FILE.toml: [model] fields and [train]/[loss]/[augment] options reach the
     checkpoint; the OUT.toml written beside it repeats the run; export reads the checkpoint's
     configuration (at fp16: exported, then converted); an unknown key or a bad value is one line naming it."""
-    import json
-
     from typer.testing import CliRunner
 
-    from d3lvo_deploy.manifest import graph_files, load_manifest
-
     from cli.main import app
+    from d3lvo_deploy.manifest import graph_files, load_manifest
 
     runner = CliRunner()
     f = tmp_path / "run.toml"
