@@ -39,7 +39,7 @@ def demo_command(
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
-    from d3lvo_deploy.synth.generator import SynthConfig, generate
+    from d3lvo_deploy.synth.generator import SynthConfig, check_config, generate
     from d3lvo_deploy.bundled import find_real_frames
 
     from .eval_cmd import _fmt, report_table
@@ -49,6 +49,7 @@ def demo_command(
     model_dir = resolve_model_dir(onnx)
     seq_dir = out_dir / "synthetic_heldout"
     cfg = SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1])
+    check_config(cfg)
     if _rendered(seq_dir, cfg):
         console.print(f"[bold]1/3[/] reusing the held-out synthetic drive rendered earlier in {seq_dir}", highlight=False)
     else:

@@ -44,7 +44,7 @@ def synth_command(
     from d3lvo_deploy.extras import require
 
     require("embreex", what="d3lvo synth")
-    from d3lvo_deploy.synth.generator import SynthConfig, generate
+    from d3lvo_deploy.synth.generator import SynthConfig, check_config, generate
 
     width, height = parse_size(size)
     if motion_from is not None and not motion_from.is_file():
@@ -52,6 +52,7 @@ def synth_command(
     cfg = SynthConfig(frames=frames, seed=seed, width=width, height=height,
                       motion_from=str(motion_from) if motion_from else None, motion_start=motion_start,
                       write_depth=depth, traffic=traffic, sensor_effects=sensor_effects)
+    check_config(cfg)
     t0 = time.perf_counter()
     with frame_progress() as bar:
         task = bar.add_task("synth", total=frames, rate="")

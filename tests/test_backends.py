@@ -61,7 +61,9 @@ def test_session_config_errors():
     for sc, words in [(SessionConfig(backend="tvm"), "--backend must be one of"),
                       (SessionConfig(ov_precision="bf16"), "openvino only"),
                       (SessionConfig(backend="openvino", provider="cuda"), "CPU"),
-                      (SessionConfig(backend="openvino", profile_dir="/tmp/x"), "onnxruntime profiles")]:
+                      (SessionConfig(backend="openvino", profile_dir="/tmp/x"), "onnxruntime profiles"),
+                      (SessionConfig(threads=-1), "--threads must be 0 .* or more, not -1"),
+                      (SessionConfig(prepare_threads=-2), "--prepare-threads must be 0 .* or more, not -2")]:
         with pytest.raises(D3LVOInputError, match=words):
             sc.check()
 

@@ -92,6 +92,16 @@ def test_synth_then_eval(tmp_path):
 def test_synth_bad_size_and_unwritable(tmp_path):
     r = runner.invoke(app, ["synth", "--out", str(tmp_path / "x"), "--size", "big"])
     assert r.exit_code == 1 and "--size" in r.output
+    # settings the renderer refuses: one line, before any progress bar, nothing written
+    for args, words in ((["--frames", "1"], "--frames must be at least 2"), (["--size", "40x20"], "too small"),
+                        (["--traffic", "-1"], "--traffic must be 0 or more")):
+        for command in (["synth", "--out", str(tmp_path / "y")], ["demo", "--out", str(tmp_path / "y")]):
+            if command[0] == "demo" and args[0] != "--frames":
+                continue  # the demo's drive has its own size and no traffic
+            r = runner.invoke(app, [*command, *args])
+            assert r.exit_code == 1 and r.output.startswith("error: "), r.output
+            assert words in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert not (tmp_path / "y").exists()
     blocker = tmp_path / "file"
     blocker.write_text("")
     r = runner.invoke(app, ["synth", "--out", str(blocker / "seq"), "--frames", "2", "--size", "320x96"])

@@ -168,15 +168,20 @@ def decode_kitti_flow(png_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return flow, png_bgr[..., 0] > 0
 
 
-def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
-             resume: bool = True) -> Path:
-    out = Path(out)
+def check_config(cfg: SynthConfig) -> None:
+    """The settings' own errors, before anything is rendered or a progress bar drawn."""
     if cfg.frames < 2:
         raise D3LVOInputError(None, "--frames must be at least 2")
     if cfg.width < 64 or cfg.height < 32:
         raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too small")
     if cfg.traffic < 0:
         raise D3LVOInputError(None, f"--traffic must be 0 or more vehicles per 100 m, not {cfg.traffic}")
+
+
+def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
+             resume: bool = True) -> Path:
+    out = Path(out)
+    check_config(cfg)
     try:
         for d in ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()) + \
                 (("motion_2", "flow_2", "shadow_2") if cfg.traffic else ()):
