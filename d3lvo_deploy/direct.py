@@ -27,6 +27,7 @@ import numpy as np
 
 from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
+from .errors import D3LVOInputError
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .odometry import FrameTiming, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
@@ -319,6 +320,10 @@ class DirectOdometry:
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
+        if self._prev is not None and image.shape[:2] != self._prev.levels[0].shape:
+            # the calibration is one camera's: a frame of another size is another camera
+            (h, w), (h0, w0) = image.shape[:2], self._prev.levels[0].shape
+            raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {w0}x{h0}")
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         P, (h, w) = self.calib.P_velo_to_image2, grey.shape

@@ -284,13 +284,21 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 image = seq.image(i)
                 points = seq.scan(i) if odo.needs_scan else None
             except D3LVOInputError as e:
-                raise D3LVOInputError(e.path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in "
-                                              f"{out}, fix the frame and rerun with --resume") from None
+                raise frame_error(e, i) from None
             read_ms = (time.perf_counter() - t0) * 1000
             # one thread: this reader has one core beside the network
-            prepared = odo.prepare(image, points, threads=1) if pipelined and odo.pre is not None else None
+            try:
+                prepared = odo.prepare(image, points, threads=1) if pipelined and odo.pre is not None else None
+            except D3LVOInputError as e:  # a frame unlike the others (its size)
+                raise frame_error(e, i) from None
             encoded = odo.encode_timed(prepared) if deep and prepared is not None else None
             return image, points, prepared, encoded, read_ms
+
+        def frame_error(e: D3LVOInputError, i: int) -> D3LVOInputError:
+            """Frame i's error, naming its image where the error names no file, and the poses saved."""
+            path = e.path if e.path is not None or not hasattr(seq, "image_path") else seq.image_path(i)
+            return D3LVOInputError(path, f"{e.problem}; poses of frames {rc.start}..{i - 1} are saved in {out}, "
+                                         "fix the frame and rerun with --resume")
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-read") if pipelined else None
         try:
@@ -313,7 +321,10 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 elif prepared is not None:
                     pose = odo.step_prepared(prepared, on_encoded=read_next)
                 else:
-                    pose = odo.step(image, points)
+                    try:
+                        pose = odo.step(image, points)
+                    except D3LVOInputError as e:  # a frame unlike the others (its size)
+                        raise frame_error(e, i) from None
                     read_next()  # the first frame has fixed the view: from here on, prepared ahead
                 view = None
                 if getattr(odo, "keep_outputs", False):  # a chosen frame: what the network saw, once for both

@@ -298,6 +298,24 @@ def test_cli_bad_input(small_model, small_synth, tmp_path, breakage, words):
         assert w in r.output
 
 
+@pytest.mark.parametrize("extra", [[], ["--pipeline"], ["--method", "direct"]])
+def test_cli_frame_of_another_size(small_model, small_synth, tmp_path, extra):
+    """A frame unlike the others (another camera's size) stops the run with the image named and the
+    poses before it kept, read ahead or not, network or direct tracker; never a pose of it."""
+    import cv2
+
+    _, onnx_dir = small_model
+    d = tmp_path / "seq"
+    shutil.copytree(small_synth, d)
+    cv2.imwrite(str(d / "image_2" / "000004.png"), np.zeros((100, 300, 3), np.uint8))
+    r = runner.invoke(app, ["run", "--seq-dir", str(d), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt"),
+                            *extra])
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    for w in ("000004.png", "image is 300x100, earlier frames were 620x188", "frames 0..3", "--resume"):
+        assert w in r.output, r.output
+    assert len((tmp_path / "o.txt").read_text().splitlines()) == 4
+
+
 def test_cli_run_scores_with_gt_and_plots(small_model, small_synth, tmp_path):
     _, onnx_dir = small_model
     r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt"),
