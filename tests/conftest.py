@@ -144,13 +144,15 @@ def points_model(tmp_path_factory):
     """(checkpoint, ONNX folder) of an untrained 224x64 point-solver model, 6 Gauss-Newton steps per
     level instead of 15 (two blocks of 3, so the graph holds the solver's Loops): 6 steps from the
     constant-velocity start still converge on the test drive's small motions. With the finest
-    level's restart from the start, as the bundled model, so that its graphs are tested too.
+    level's restart from the start and its check against frame t's scan, as the bundled model, so
+    that its graphs are tested too (ratio 1: the restart is kept wherever it fits the scan better).
     Exported with a dynamic batch: the runtime feeds it batches of one, the batched test two
     pairs, from the one export."""
     from export.onnx_export import ExportConfig, export_checkpoint
 
     d = built_once(tmp_path_factory, "points_model", lambda d: export_checkpoint(
-        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6), pt_fine_restart=0.001),
+        make_checkpoint(d / "ck.pt", pose_head="points", pt_iters=(6, 6, 6), pt_fine_restart=0.001,
+                        pt_restart_depth=1.0),
         ExportConfig(out=d / "onnx", dynamic_batch=True)))
     return d / "ck.pt", d / "onnx"
 

@@ -617,26 +617,24 @@ def test_onnx_runtime_equals_torch_and_tracks(points_model, small_synth, tmp_pat
 
 
 def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, small_synth, tmp_path):
-    """Exported with `pt_restart_depth` (ratio 1: the restart is kept wherever it fits frame t's
-    scan better), the flow+pose graph takes frame t's LiDAR depth (`scan_depth2`), which the
-    torch-free runtime feeds at the camera's own size, and gives torch's trajectory; the scan
-    changes which pose is kept on some pairs (the trajectory differs from the one without it)."""
+    """Exported with `pt_restart_depth` (the fixture's ratio 1: the restart is kept wherever it fits
+    frame t's scan better), the flow+pose graph takes frame t's LiDAR depth (`scan_depth2`), which
+    the torch-free runtime feeds at the camera's own size, and gives torch's trajectory; the scan
+    changes which pose is kept on some pairs (the trajectory differs from the one without it). A
+    graph without the check has no such input: `test_export_set_reaches_the_graph`."""
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.poses import read_poses
-    from export.onnx_export import ExportConfig, export_checkpoint
     from models.checkpoint import build_model, load_checkpoint
     from models.predict import predict_sequence
 
-    ck = load_checkpoint(points_model[0])
-    export_checkpoint(points_model[0], ExportConfig(out=tmp_path / "o", solver={"pt_restart_depth": 1.0}))
-    inputs = [i["name"] for i in load_manifest(tmp_path / "o")["stages"]["flowpose"]["inputs"]]
-    assert "scan_depth2" in inputs and "scan_depth2" not in [
-        i["name"] for i in load_manifest(points_model[1])["stages"]["flowpose"]["inputs"]]
-    torch_traj = predict_sequence(build_model({**ck, "config": replace(ck["config"], pt_restart_depth=1.0)}),
-                                  small_synth)
-    without = predict_sequence(build_model(ck), small_synth)
-    run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
+    ck, onnx_dir = load_checkpoint(points_model[0]), points_model[1]
+    assert ck["config"].pt_restart_depth == 1.0
+    assert "scan_depth2" in [i["name"] for i in load_manifest(onnx_dir)["stages"]["flowpose"]["inputs"]]
+    torch_traj = predict_sequence(build_model(ck), small_synth)
+    without = predict_sequence(build_model({**ck, "config": replace(ck["config"], pt_restart_depth=0.0)}),
+                               small_synth)
+    run_sequence(KittiSequence.open(small_synth), onnx_dir, RunConfig(out=tmp_path / "p.txt"))
     est = read_poses(tmp_path / "p.txt").poses
     np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
@@ -803,7 +801,10 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     from models.checkpoint import build_model, load_checkpoint, save_checkpoint
     from models.d3lvo import D3LVO
 
-    model = build_model(load_checkpoint(points_model[0]))
+    fixture = build_model(load_checkpoint(points_model[0]))
+    # without the restart's scan check: the choice between the weighted and the classical pose alone
+    model = D3LVO(replace(fixture.cfg, pt_restart_depth=0.0)).eval()
+    model.load_state_dict(fixture.state_dict())
     torch.manual_seed(1)
     with torch.no_grad():
         model.point_pose.moving.net[-1].weight.normal_(std=3.0)
@@ -828,7 +829,8 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     assert (np.abs(weighted - classical).max(axis=(1, 2)) > 1e-4).all()  # far beyond the tolerance below
     angles = np.degrees(rotation_angle_precise(classical[:, :3, :3].transpose(0, 2, 1) @ weighted[:, :3, :3]))
     assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
-    gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod())), "pt_refine": 2}
+    gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod())), "pt_refine": 2,
+            "pt_restart_depth": 0.0}
     save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
     export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=tmp_path / "gate", dynamic_batch=True, solver=gate))
     want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
@@ -862,9 +864,11 @@ def test_direct_method_is_the_models_classical_mode(points_model):
 def test_export_set_reaches_the_graph(points_model, tmp_path):
     """`d3lvo export --set` changes the exported solver, not only the manifest: a median (one
     TopK) at every pt_scale_every-th step of a level, so the fixture's (6, 6, 6) with the default
-    3 (steps 0 and 3) gives 6 TopK nodes, and its finest-level restart two more (the two poses'
-    robust scales in `consensus_gain`; the restart's steps run in the same batch); pt_iters=3,2
-    with pt_scale_every=1 and pt_fine_restart=0 gives 5; the point list is pt_capacity long, and
+    3 (steps 0 and 3) gives 6 TopK nodes, its finest-level restart two more (the two poses'
+    robust scales in `consensus_gain`; the restart's steps run in the same batch) and the restart's
+    check against frame t's scan one (`lidar_depth_error`'s median, both poses in one batch);
+    pt_iters=3,2 with pt_scale_every=1 and pt_fine_restart=0 gives 5, and without the restart the
+    graph takes no scan; the point list is pt_capacity long, and
     with pt_median_stride=4 the steps' medians sort every fourth point (a TopK of 512 / 4 / 2 + 1).
     A Loop's TopKs count once per trip it may take (its trip-count input)."""
     from typer.testing import CliRunner
@@ -894,12 +898,13 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
         return ks
 
     ck, default_dir = points_model
-    assert topk_and_capacity(default_dir) == (6 + 2, 2048)
+    assert topk_and_capacity(default_dir) == (6 + 2 + 1, 2048)
     r = CliRunner().invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_iters=3,2",
                                  "--set", "pt_capacity=512", "--set", "pt_stop=3e-5", "--set", "pt_scale_every=1",
                                  "--set", "pt_fine_restart=0", "--set", "pt_median_stride=4"])
     assert r.exit_code == 0, r.output
     assert topk_and_capacity(tmp_path / "o") == (5, 512)
+    assert "scan_depth2" not in [i["name"] for i in load_manifest(tmp_path / "o")["stages"]["flowpose"]["inputs"]]
     m = load_manifest(tmp_path / "o")["model_config"]
     assert (m["pt_iters"], m["pt_capacity"], m["pt_stop"], m["pt_scale_every"], m["pt_fine_restart"]) == \
         ([3, 2], 512, 3e-5, 1, 0.0)
