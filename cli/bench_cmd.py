@@ -144,7 +144,7 @@ def bench_command(
     for b in engines:
         if b not in BACKENDS:
             raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {b!r}")
-        SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32").check()
+        SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
     if "openvino" in engines:
         from d3lvo_deploy.extras import require
 

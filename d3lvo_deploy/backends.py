@@ -141,11 +141,11 @@ class SessionConfig:
         return replace(self, backend="openvino" if use_ov else "onnxruntime")
 
     def check(self) -> None:
-        for name, n in (("--threads", self.threads), ("flowpose_threads", self.flowpose_threads),
-                        ("--prepare-threads", self.prepare_threads)):
+        for name, n, zero in (("--threads", self.threads, "OMP_NUM_THREADS where set, else all cores"),
+                              ("flowpose_threads", self.flowpose_threads, "as the other stages"),
+                              ("--prepare-threads", self.prepare_threads, "1 or 2 by the cores")):
             if n < 0:
-                raise D3LVOInputError(None, f"{name} must be 0 (OMP_NUM_THREADS where set, else all cores) or more, "
-                                            f"not {n}")
+                raise D3LVOInputError(None, f"{name} must be 0 ({zero}) or more, not {n}")
         if self.backend not in (*BACKENDS, AUTO):
             raise D3LVOInputError(None, f"--backend must be one of {', '.join(BACKENDS)} or {AUTO}, not {self.backend!r}")
         if self.backend == AUTO:

@@ -63,7 +63,8 @@ def test_session_config_errors():
                       (SessionConfig(backend="openvino", provider="cuda"), "CPU"),
                       (SessionConfig(backend="openvino", profile_dir="/tmp/x"), "onnxruntime profiles"),
                       (SessionConfig(threads=-1), "--threads must be 0 .* or more, not -1"),
-                      (SessionConfig(prepare_threads=-2), "--prepare-threads must be 0 .* or more, not -2")]:
+                      (SessionConfig(prepare_threads=-2), r"--prepare-threads must be 0 \(1 or 2 by the cores\) or more"),
+                      (SessionConfig(flowpose_threads=-1), r"flowpose_threads must be 0 \(as the other stages\)")]:
         with pytest.raises(D3LVOInputError, match=words):
             sc.check()
 

@@ -861,7 +861,7 @@ def test_direct_method_is_the_models_classical_mode(points_model):
     assert DirectConfig.of_model(defaults) == DirectConfig()  # the defaults agree on both sides
 
 
-def test_export_set_reaches_the_graph(points_model, tmp_path):
+def test_export_set_reaches_the_graph(points_model, small_synth, tmp_path):
     """`d3lvo export --set` changes the exported solver, not only the manifest: a median (one
     TopK) at every pt_scale_every-th step of a level, so the fixture's (6, 6, 6) with the default
     3 (steps 0 and 3) gives 6 TopK nodes, its finest-level restart two more (the two poses'
@@ -870,7 +870,8 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
     pt_iters=3,2 with pt_scale_every=1 and pt_fine_restart=0 gives 5, and without the restart the
     graph takes no scan; the point list is pt_capacity long, and
     with pt_median_stride=4 the steps' medians sort every fourth point (a TopK of 512 / 4 / 2 + 1).
-    A Loop's TopKs count once per trip it may take (its trip-count input)."""
+    A Loop's TopKs count once per trip it may take (its trip-count input). That graph, fed by the
+    torch-free runtime without a scan, gives the trajectory of torch under the same settings."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -910,6 +911,15 @@ def test_export_set_reaches_the_graph(points_model, tmp_path):
         ([3, 2], 512, 3e-5, 1, 0.0)
     assert loop_topk_lengths(default_dir) == {2048 // 2 + 1}
     assert loop_topk_lengths(tmp_path / "o") == {512 // 4 // 2 + 1} and m["pt_median_stride"] == 4
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from models.checkpoint import build_model, load_checkpoint
+    from models.config import D3LVOConfig
+    from models.predict import predict_sequence
+
+    torch_traj = predict_sequence(build_model({**load_checkpoint(ck), "config": D3LVOConfig.from_dict(m)}), small_synth)
+    run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
+    np.testing.assert_allclose(read_poses(tmp_path / "p.txt").poses[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
 
 
 def test_no_points_no_motion_beyond_the_start():

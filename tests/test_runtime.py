@@ -298,10 +298,12 @@ def test_cli_bad_input(small_model, small_synth, tmp_path, breakage, words):
         assert w in r.output
 
 
-@pytest.mark.parametrize("extra", [[], ["--pipeline"], ["--method", "direct"]])
+@pytest.mark.parametrize("extra", [[], ["--pipeline"], ["--pipeline", "--threads", "2", "--backend", "onnxruntime"],
+                                   ["--method", "direct"]])
 def test_cli_frame_of_another_size(small_model, small_synth, tmp_path, extra):
-    """A frame unlike the others (another camera's size) stops the run with the image named and the
-    poses before it kept, read ahead or not, network or direct tracker; never a pose of it."""
+    """A frame unlike the others (another camera's size) stops the run with the frame named and the
+    poses before it kept: sequential, read ahead (two deep), read and encoded ahead (three deep,
+    onnxruntime on two threads), and the direct tracker; never a pose of it."""
     import cv2
 
     _, onnx_dir = small_model
@@ -311,7 +313,7 @@ def test_cli_frame_of_another_size(small_model, small_synth, tmp_path, extra):
     r = runner.invoke(app, ["run", "--seq-dir", str(d), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt"),
                             *extra])
     assert r.exit_code == 1 and "Traceback" not in r.output, r.output
-    for w in ("000004.png", "image is 300x100, earlier frames were 620x188", "frames 0..3", "--resume"):
+    for w in ("frame 000004: image is 300x100, earlier frames were 620x188", "frames 0..3", "--resume"):
         assert w in r.output, r.output
     assert len((tmp_path / "o.txt").read_text().splitlines()) == 4
 
