@@ -297,9 +297,9 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         def frame_error(e: D3LVOInputError, i: int) -> D3LVOInputError:
             """Frame i's error, naming the frame where the error names no file, and the poses saved."""
             problem = e.problem if e.path is not None else f"frame {seq.frame_names[i]}: {e.problem}"
-            saved = (f"poses of frames {rc.start}..{i - 1} are saved in {out}" if i > rc.start
-                     else f"no pose is saved in {out} yet")
-            return D3LVOInputError(e.path, f"{problem}; {saved}, fix the frame and rerun with --resume")
+            saved = (f"poses of frames {rc.start}..{i - 1} are saved in {out}, fix the frame and rerun with "
+                     "--resume" if i > rc.start else "no pose is saved yet, fix the frame and rerun")
+            return D3LVOInputError(e.path, f"{problem}; {saved}")
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-read") if pipelined else None
         try:
