@@ -27,9 +27,8 @@ import numpy as np
 
 from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
-from .errors import D3LVOInputError
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
-from .odometry import FrameTiming, clean_scan
+from .odometry import FrameTiming, check_frame_size, clean_scan
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -320,10 +319,8 @@ class DirectOdometry:
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
-        if self._prev is not None and image.shape[:2] != self._prev.levels[0].shape:
-            # the calibration is one camera's: a frame of another size is another camera
-            (h, w), (h0, w0) = image.shape[:2], self._prev.levels[0].shape
-            raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {w0}x{h0}")
+        if self._prev is not None:
+            check_frame_size(image, *self._prev.levels[0].shape[::-1])
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         P, (h, w) = self.calib.P_velo_to_image2, grey.shape

@@ -33,6 +33,13 @@ class ScanWarning(UserWarning):
     """A scan was empty or had NaN points; the documented fallback was used."""
 
 
+def check_frame_size(image: np.ndarray, width: int, height: int) -> None:
+    """A tracker's calibration is one camera's: a frame of another size is another camera."""
+    h, w = image.shape[:2]
+    if (w, h) != (width, height):
+        raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {width}x{height}")
+
+
 def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
     """Drop non-finite points. An empty result is allowed: the frame then has no LiDAR depth and
     the completion stage works from the image alone (documented fallback), with a warning."""
@@ -123,9 +130,8 @@ class Odometry:
         h, w = image.shape[:2]
         if self.pre is None:
             self.pre = FramePreprocessor.for_model(self.calib, w, h, self.model.config, self.model.depth_input)
-        elif (w, h) != (self.pre.view.src_width, self.pre.view.src_height):
-            raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were "
-                                        f"{self.pre.view.src_width}x{self.pre.view.src_height}")
+        else:
+            check_frame_size(image, self.pre.view.src_width, self.pre.view.src_height)
         return self.pre
 
     def prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int | None = None) -> "PreparedFrame":

@@ -280,16 +280,13 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 if wait > 0:
                     time.sleep(wait)
             t0 = time.perf_counter()
-            try:
+            try:  # a bad file, or a frame unlike the others (its size)
                 image = seq.image(i)
                 points = seq.scan(i) if odo.needs_scan else None
-            except D3LVOInputError as e:
-                raise frame_error(e, i) from None
-            read_ms = (time.perf_counter() - t0) * 1000
-            # one thread: this reader has one core beside the network
-            try:
+                read_ms = (time.perf_counter() - t0) * 1000
+                # one thread: this reader has one core beside the network
                 prepared = odo.prepare(image, points, threads=1) if pipelined and odo.pre is not None else None
-            except D3LVOInputError as e:  # a frame unlike the others (its size)
+            except D3LVOInputError as e:
                 raise frame_error(e, i) from None
             encoded = odo.encode_timed(prepared) if deep and prepared is not None else None
             return image, points, prepared, encoded, read_ms
