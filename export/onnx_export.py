@@ -138,14 +138,13 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
     _declare_output_shapes(path, module, args, dynamic_batch)
 
 
-def _export_checked(module, args, path: Path, ec: ExportConfig, meta: dict[str, str]) -> onnx.ModelProto:
-    """Export, stamp the metadata, check (`check_graph`)."""
+def _export_stamped(module, args, path: Path, ec: ExportConfig, meta: dict[str, str]) -> None:
+    """Export and stamp the metadata; `check_graph` comes after every export (`export_checkpoint`)."""
     _export_one(module, args, path, ec.opset, ec.dynamic_batch)
     m = onnx.load(str(path))
     for k, v in meta.items():
         m.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
     onnx.save(m, str(path))
-    return check_graph(path)
 
 
 def _declare_output_shapes(path: Path, module, args, dynamic_batch: bool) -> None:
@@ -206,21 +205,29 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
     if not cfg.learned_completion:
         del stages["completion"]  # identity (rgb_sparse), IP-Basic in numpy, or no depth (rgb)
     inputs = _sample_inputs(model, h, w)
-    manifest_stages = {}
+    # every graph is traced before any is checked: checking loads onnxruntime, and once its
+    # pybind11 module is loaded every C++ exception (each exhausted pybind iterator of torch's
+    # exporter) runs through its translators, which made each later export ~1.5x slower
+    own_files = {}
     for name, module in stages.items():
-        path = out / f"{name}.onnx"
         meta = {"d3lvo_stage": name, "d3lvo_format": MANIFEST_FORMAT, "d3lvo_version": d3lvo_deploy.__version__,
                 "d3lvo_config": json.dumps(cfg.to_dict()), "d3lvo_input_size": f"{w}x{h}"}
-        m = _export_checked(module.eval(), inputs[name], path, ec, meta)
-        ins, outs = _io_spec(m)
+        path = out / f"{name}.onnx"
+        _export_stamped(module.eval(), inputs[name], path, ec, meta)
+        if any(n.op_type == "GridSample" for n in all_nodes(onnx.load(str(path)).graph)):
+            # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
+            own_files[name] = path.with_name(f"{name}.onnxruntime.onnx")
+            with gathered():
+                _export_stamped(module, inputs[name], own_files[name], ec, {**meta, "d3lvo_sampling": "gather"})
+    manifest_stages = {}
+    for name in stages:
+        path = out / f"{name}.onnx"
+        ins, outs = _io_spec(check_graph(path))
         manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs,
                                  "gflops": round(graph_flops(path) / 1e9, 4)}
-        if any(n.op_type == "GridSample" for n in all_nodes(m.graph)):
-            # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
-            own = path.with_name(f"{name}.onnxruntime.onnx")
-            with gathered():
-                m_own = _export_checked(module, inputs[name], own, ec, {**meta, "d3lvo_sampling": "gather"})
-            if _io_spec(m_own) != (ins, outs):
+        own = own_files.get(name)
+        if own is not None:
+            if _io_spec(check_graph(own)) != (ins, outs):
                 raise RuntimeError(f"{own.name}: inputs/outputs differ from {path.name}")
             manifest_stages[name]["onnxruntime"] = {"file": own.name, "sha256": sha256(own)}
         if progress is not None:
