@@ -1,0 +1,132 @@
+"""What one block of the point solver's Gauss-Newton steps costs on OpenVINO, and which parts of it.
+
+    .venv/bin/python scripts/solver_block_cost.py [SEQ] [--rounds 4] [--runs 300]
+
+Runs the bundled model in PyTorch on SEQ's first three frames (default: the 20 real KITTI frames
+of ../shared/data) and keeps the inputs of its largest finest-level block (the full-resolution
+image). That block is exported alone (OpenVINO's layout, `export/solver_loop.py`'s body) three
+ways, each compiled on OpenVINO with the runtime's settings and timed on those inputs, taking
+turns:
+
+- as shipped;
+- without the exposure match (`pt_affine` off: frame t's grey against frame t-1's as it is);
+- with the 6x6 solve replaced by a stand-in of one op (g divided by H's diagonal): not a
+  solver, only what the block costs without one.
+
+The inputs are read in place (`share_inputs`, as the runtime does), so an image's size does not
+enter through a copy. Figures: docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import onnx
+import torch
+
+import models.point_solver as ps
+from d3lvo_deploy.cpu import cpu_info
+from models.checkpoint import build_model, load_checkpoint
+from models.predict import predict_sequence
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared/data/kitti_raw_snippet/sequences/r0926"
+BUNDLED = Path(__file__).resolve().parents[1] / "d3lvo_deploy/default_model/default.pt"
+
+
+def finest_block_inputs(seq: Path) -> list:
+    """gn_steps' arguments of the block with the largest image, from the bundled model in torch."""
+    model = build_model(load_checkpoint(BUNDLED))
+    kept: dict[str, list] = {}
+    steps = ps.gn_steps
+
+    def record(*a, **k):
+        if "args" not in kept or a[4].shape[-1] > kept["args"][4].shape[-1]:
+            kept["args"] = [x.clone() if torch.is_tensor(x) else x for x in a]
+        return steps(*a, **k)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for sub in ("image_2", "velodyne"):
+            (Path(tmp) / sub).mkdir()
+            for f in sorted((seq / sub).iterdir())[:3]:
+                shutil.copy(f, Path(tmp) / sub / f.name)
+        shutil.copy(seq / "calib.txt", Path(tmp) / "calib.txt")
+        ps.gn_steps = record
+        try:
+            with torch.no_grad():
+                predict_sequence(model, tmp)
+        finally:
+            ps.gn_steps = steps
+    return kept["args"]
+
+
+def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path):
+    """The block exported with `solve` for the 6x6 system, compiled as the runtime compiles a stage."""
+    import openvino as ov
+
+    n_in = 14  # the tensors of gn_steps; then steps, settings (and the layout)
+    steps = args[n_in]
+
+    class Block(torch.nn.Module):
+        def forward(self, *t):
+            return ps.gn_steps(*t, steps, settings)
+
+    shipped = ps.scaled_solve
+    ps.scaled_solve = solve
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(Block(), tuple(args[:n_in]), str(path), input_names=[f"in{j}" for j in range(n_in)],
+                              dynamic_axes={"in4": {2: "h", 3: "w"}}, opset_version=17, dynamo=False)
+    finally:
+        ps.scaled_solve = shipped
+    ops = sum(n.op_type != "Constant" for n in onnx.load(str(path)).graph.node)
+    c = ov.Core().compile_model(str(path), "CPU", {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1",
+                                                    "INFERENCE_NUM_THREADS": "2", "INFERENCE_PRECISION_HINT": "f32"})
+    names = {n for p in c.inputs for n in p.get_names()}
+    feeds = {f"in{j}": args[j].numpy() for j in range(n_in) if f"in{j}" in names}
+    return c.create_infer_request(), feeds, ops
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("seq", nargs="?", type=Path, default=REAL)
+    p.add_argument("--rounds", type=int, default=4)
+    p.add_argument("--runs", type=int, default=300)
+    a = p.parse_args(argv)
+    if not (a.seq / "image_2").is_dir():
+        sys.exit(f"error: {a.seq}: no image_2/ folder (a KITTI odometry sequence is needed)")
+    torch.set_num_threads(2)
+    args = finest_block_inputs(a.seq)
+    settings = args[15]
+    print(f"CPU: {cpu_info().model}; block of {args[14]} steps, {args[2].shape[0]} solves of "
+          f"{args[2].shape[-1]} points, image {tuple(args[4].shape)}")
+    with tempfile.TemporaryDirectory() as tmp:
+        variants = {
+            "as shipped": compiled_block(args, settings, ps.scaled_solve, Path(tmp) / "a.onnx"),
+            "without the exposure match": compiled_block(args, replace(settings, affine=False), ps.scaled_solve,
+                                                         Path(tmp) / "b.onnx"),
+            "solve replaced by one op": compiled_block(args, settings, lambda Hb, d: Hb[:, :, 6:] / d,
+                                                       Path(tmp) / "c.onnx"),
+        }
+        times: dict[str, list[float]] = {k: [] for k in variants}
+        for _ in range(a.rounds):
+            for k, (req, feeds, _) in variants.items():
+                for _ in range(5):
+                    req.infer(feeds, share_inputs=True)
+                t = time.perf_counter()
+                for _ in range(a.runs):
+                    req.infer(feeds, share_inputs=True)
+                times[k].append((time.perf_counter() - t) / a.runs * 1000)
+    for k, (_, _, ops) in variants.items():
+        print(f"{k:28s} {ops:4d} graph ops, ms per block: " + " / ".join(f"{t:.2f}" for t in times[k]))
+
+
+if __name__ == "__main__":
+    main()
