@@ -207,12 +207,13 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
     inputs = _sample_inputs(model, h, w)
     # every graph is traced before any is checked: checking loads onnxruntime, and once its
     # pybind11 module is loaded every C++ exception (each exhausted pybind iterator of torch's
-    # exporter) runs through its translators, which made each later export ~1.5x slower
+    # exporter) runs through its translators, which makes each later trace ~1.5x slower
+    files = {name: out / f"{name}.onnx" for name in stages}
     own_files = {}
     for name, module in stages.items():
         meta = {"d3lvo_stage": name, "d3lvo_format": MANIFEST_FORMAT, "d3lvo_version": d3lvo_deploy.__version__,
                 "d3lvo_config": json.dumps(cfg.to_dict()), "d3lvo_input_size": f"{w}x{h}"}
-        path = out / f"{name}.onnx"
+        path = files[name]
         _export_stamped(module.eval(), inputs[name], path, ec, meta)
         if any(n.op_type == "GridSample" for n in all_nodes(onnx.load(str(path)).graph)):
             # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
@@ -220,8 +221,7 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
             with gathered():
                 _export_stamped(module, inputs[name], own_files[name], ec, {**meta, "d3lvo_sampling": "gather"})
     manifest_stages = {}
-    for name in stages:
-        path = out / f"{name}.onnx"
+    for name, path in files.items():
         ins, outs = _io_spec(check_graph(path))
         manifest_stages[name] = {"file": path.name, "sha256": sha256(path), "inputs": ins, "outputs": outs,
                                  "gflops": round(graph_flops(path) / 1e9, 4)}

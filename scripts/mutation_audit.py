@@ -226,6 +226,10 @@ MUTATIONS = [
     Mutation("the export reuses a solver block across the two graphs' sampling layouts", "export/solver_loop.py",
              "               dynamic_batch, gathering())", "               dynamic_batch)",
              ("tests/test_point_solver.py::test_each_engines_graph_loops_over_its_own_steps",)),
+    Mutation("bench refuses --precision for the default network at --height/--width", "cli/bench_cmd.py",
+             'if precision != "fp32" and ckpt is None and not default_network:',
+             'if precision != "fp32" and ckpt is None:',
+             ("tests/test_bench.py::test_cli_bench_size_needs_both_and_no_fixed_folder",)),
 ]
 
 

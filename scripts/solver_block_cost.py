@@ -4,23 +4,25 @@
 
 Runs the bundled model in PyTorch on SEQ's first three frames (default: the 20 real KITTI frames
 of ../shared/data) and keeps the inputs of its largest finest-level block (the full-resolution
-image). That block is exported alone (OpenVINO's layout, `export/solver_loop.py`'s body) three
-ways, each compiled on OpenVINO with the runtime's settings and timed on those inputs, taking
-turns:
+image). That block is exported alone as the flow+pose graph's Loop body is (`export/solver_loop.py`'s
+`_Block`, OpenVINO's layout) three ways, each opened with the runtime's OpenVINO session
+(`d3lvo_deploy.backends.OpenVinoSession`, 2 threads, inputs read in place) and timed on those
+inputs, taking turns:
 
 - as shipped;
 - without the exposure match (`pt_affine` off: frame t's grey against frame t-1's as it is);
 - with the 6x6 solve replaced by a stand-in of one op (g divided by H's diagonal): not a
   solver, only what the block costs without one.
 
-The inputs are read in place (`share_inputs`, as the runtime does), so an image's size does not
-enter through a copy. Figures: docs/performance.md.
+Figures: docs/performance.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -67,31 +69,29 @@ def finest_block_inputs(seq: Path) -> list:
 
 
 def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path):
-    """The block exported with `solve` for the 6x6 system, compiled as the runtime compiles a stage."""
-    import openvino as ov
+    """The block exported as the Loop's body with `solve` for the 6x6 system, opened as the
+    runtime opens a stage; returns (session, feeds, graph ops)."""
+    from d3lvo_deploy.backends import OpenVinoSession, SessionConfig
+    from export.solver_loop import _Block
 
-    n_in = 14  # the tensors of gn_steps; then steps, settings (and the layout)
-    steps = args[n_in]
-
-    class Block(torch.nn.Module):
-        def forward(self, *t):
-            return ps.gn_steps(*t, steps, settings)
-
+    n_in = 14  # gn_steps' tensors; then the steps, the settings and the sampling layout
+    Xh, stack = args[2], args[4]
+    layout = (Xh.shape[0] // stack.shape[0], 3, Xh.shape[-1])  # as `block_graph` passes it
     shipped = ps.scaled_solve
     ps.scaled_solve = solve
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            torch.onnx.export(Block(), tuple(args[:n_in]), str(path), input_names=[f"in{j}" for j in range(n_in)],
+            torch.onnx.export(_Block(replace(settings, scale_every=args[n_in]), layout), tuple(args[:n_in]),
+                              str(path), input_names=[f"in{j}" for j in range(n_in)],
                               dynamic_axes={"in4": {2: "h", 3: "w"}}, opset_version=17, dynamo=False)
     finally:
         ps.scaled_solve = shipped
     ops = sum(n.op_type != "Constant" for n in onnx.load(str(path)).graph.node)
-    c = ov.Core().compile_model(str(path), "CPU", {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1",
-                                                    "INFERENCE_NUM_THREADS": "2", "INFERENCE_PRECISION_HINT": "f32"})
-    names = {n for p in c.inputs for n in p.get_names()}
-    feeds = {f"in{j}": args[j].numpy() for j in range(n_in) if f"in{j}" in names}
-    return c.create_infer_request(), feeds, ops
+    session = OpenVinoSession(path, SessionConfig(threads=2, backend="openvino"), "flowpose")
+    names = {name for name, _ in session.inputs}
+    feeds = {f"in{j}": args[j].contiguous().numpy() for j in range(n_in) if f"in{j}" in names}
+    return session, feeds, ops
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -103,6 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     if not (a.seq / "image_2").is_dir():
         sys.exit(f"error: {a.seq}: no image_2/ folder (a KITTI odometry sequence is needed)")
     torch.set_num_threads(2)
+    os.environ.setdefault("D3LVO_CACHE", tempfile.mkdtemp())  # compile these graphs, keep none
     args = finest_block_inputs(a.seq)
     settings = args[15]
     print(f"CPU: {cpu_info().model}; block of {args[14]} steps, {args[2].shape[0]} solves of "
@@ -117,15 +118,20 @@ def main(argv: list[str] | None = None) -> None:
         }
         times: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(a.rounds):
-            for k, (req, feeds, _) in variants.items():
+            for k, (session, feeds, _) in variants.items():
                 for _ in range(5):
-                    req.infer(feeds, share_inputs=True)
+                    session.run(feeds)
                 t = time.perf_counter()
                 for _ in range(a.runs):
-                    req.infer(feeds, share_inputs=True)
+                    session.run(feeds)
                 times[k].append((time.perf_counter() - t) / a.runs * 1000)
+    first = next(iter(variants))
     for k, (_, _, ops) in variants.items():
         print(f"{k:28s} {ops:4d} graph ops, ms per block: " + " / ".join(f"{t:.2f}" for t in times[k]))
+    for k in list(variants)[1:]:  # each round's pair taken a moment apart: the VM's drift cancels
+        saved = statistics.median(a - b for a, b in zip(times[first], times[k]))
+        print(f"{k}: {saved:.2f} ms less per block than {first} (median of the rounds' differences, "
+              f"{100 * saved / statistics.median(times[first]):.0f} %)")
 
 
 if __name__ == "__main__":

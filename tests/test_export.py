@@ -135,8 +135,8 @@ def test_dynamic_batch(tmp_path):
 
 @pytest.mark.slow
 def test_parity_at_paper_resolution(tmp_path):
-    """1216x352 as in the paper (the default config), on real frames when present. One Gauss-Newton
-    step per level instead of four: each step is the same graph, and the export takes a third less."""
+    """1216x352 as in the paper: the default config with one Gauss-Newton step per level instead of
+    four (each step is the same graph; the export takes a third less), on real frames when present."""
     torch.manual_seed(0)
     cfg = D3LVOConfig(gn_iters=1)
     save_checkpoint(tmp_path / "full.pt", D3LVO(cfg).eval(), cfg, step=0)
