@@ -140,16 +140,18 @@ def bench_command(
     default_network = ckpt is None and onnx is None and height is not None
     if precision != "fp32" and ckpt is None and not default_network:
         raise D3LVOInputError(None, "--precision needs --ckpt or --height/--width (the bundled model is fp32)")
-    engines = available_backends() if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
-    for b in engines:
+    # without --backend, every installed engine, listed after any export: listing imports OpenVINO,
+    # whose pybind11 module slows torch's exporter (docs/export-and-parity.md)
+    engines = None if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
+    for b in engines or BACKENDS:
         if b not in BACKENDS:
             raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {b!r}")
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
-    if "openvino" in engines:
+    if engines is not None and "openvino" in engines:
         from d3lvo_deploy.extras import require
 
         require("openvino", what="--backend openvino")
-    if profile is not None and "onnxruntime" not in engines:
+    if profile is not None and engines is not None and "onnxruntime" not in engines:
         raise D3LVOInputError(profile, "--profile writes onnxruntime profiles: include --backend onnxruntime")
     if ckpt is not None or default_network or torch_compile:
         from d3lvo_deploy.extras import require
@@ -193,6 +195,8 @@ def bench_command(
             from d3lvo_deploy.bundled import bundled_model_dir
 
             onnx = bundled_model_dir()
+        if engines is None:
+            engines = available_backends()
         manifest = load_manifest(onnx)
         if other is not None and (other["input"]["width"], other["input"]["height"]) != (
                 manifest["input"]["width"], manifest["input"]["height"]):

@@ -15,7 +15,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
 from .errors import D3LVOInputError
 
@@ -31,12 +30,18 @@ OV_PRECISIONS = ("f32", "bf16")
 REDUCED_PRECISION_STAGES = ("completion", "encoder")
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
-OPT_LEVELS = {
-    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
-    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-}
+# onnxruntime's GraphOptimizationLevel members, by the names --optimization takes
+OPT_LEVELS = {"disable": "ORT_DISABLE_ALL", "basic": "ORT_ENABLE_BASIC", "extended": "ORT_ENABLE_EXTENDED",
+              "all": "ORT_ENABLE_ALL"}
+
+
+def _ort():
+    """onnxruntime, imported where a session needs it rather than with this module: once its
+    pybind11 module is loaded, every C++ exception in the process runs through its exception
+    translators, which slows torch's exporter ~1.5x (`d3lvo bench --ckpt` exports first)."""
+    import onnxruntime
+
+    return onnxruntime
 
 
 def _usable_cores(topology: str = "/sys/devices/system/cpu") -> int:
@@ -59,7 +64,7 @@ def resolve_providers(name: str) -> list[str]:
     if name not in PROVIDERS:
         raise D3LVOInputError(None, f"--provider must be one of {', '.join(PROVIDERS)}, not {name!r}")
     wanted = PROVIDERS[name]
-    available = ort.get_available_providers()
+    available = _ort().get_available_providers()
     if wanted not in available:
         warnings.warn(f"{wanted} is not available in this onnxruntime build; falling back to CPU", stacklevel=2)
         return ["CPUExecutionProvider"]
@@ -236,8 +241,10 @@ class OrtSession:
     def __init__(self, path: Path, sc: SessionConfig, stage: str, expected: dict | None = None):
         if sc.optimization not in OPT_LEVELS:
             raise D3LVOInputError(None, f"--optimization must be one of {', '.join(OPT_LEVELS)}")
+        ort = _ort()
+        level = getattr(ort.GraphOptimizationLevel, OPT_LEVELS[sc.optimization])
         so = ort.SessionOptions()
-        so.graph_optimization_level = OPT_LEVELS[sc.optimization]
+        so.graph_optimization_level = level
         so.intra_op_num_threads = sc.engine_threads
         so.inter_op_num_threads = 1
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -259,7 +266,7 @@ class OrtSession:
                 self.sess = ort.InferenceSession(str(cached), so, providers=providers)
             except Exception:  # noqa: BLE001 - a damaged cache entry: optimise afresh
                 cached.unlink(missing_ok=True)
-                so.graph_optimization_level = OPT_LEVELS[sc.optimization]
+                so.graph_optimization_level = level
         if self.sess is None:
             tmp = None
             if cached is not None:
@@ -349,7 +356,7 @@ def ort_cache_file(sc: SessionConfig, stage: str, expected: dict | None) -> Path
     version and the CPU, since the optimised graph holds kernels chosen for them."""
     if sc.optimization != "all" or sc.profile_dir or not expected or not expected.get("sha256"):
         return None
-    folder = engine_cache_dir("onnxruntime", ort.__version__)
+    folder = engine_cache_dir("onnxruntime", _ort().__version__)
     return None if folder is None else folder / f"{stage}-{expected['sha256'][:24]}-t{sc.engine_threads}.onnx"
 
 
