@@ -143,7 +143,9 @@ def bench_command(
     # without --backend, every installed engine, listed after any export: listing imports OpenVINO,
     # whose pybind11 module slows torch's exporter (docs/export-and-parity.md)
     engines = None if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
-    for b in engines or BACKENDS:
+    if engines == []:
+        raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {backend!r}")
+    for b in BACKENDS if engines is None else engines:
         if b not in BACKENDS:
             raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {b!r}")
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()

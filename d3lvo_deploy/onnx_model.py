@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-# SessionConfig and the onnxruntime settings, re-exported for code that imports them from here
+# SessionConfig and the onnxruntime settings (OPT_LEVELS: GraphOptimizationLevel member names),
+# re-exported for code that imports them from here
 from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig,  # noqa: F401
                        open_session)
 from .backends import resolve_providers  # noqa: F401

@@ -138,13 +138,14 @@ def _export_one(module, args, path: Path, opset: int, dynamic_batch: bool) -> No
     _declare_output_shapes(path, module, args, dynamic_batch)
 
 
-def _export_stamped(module, args, path: Path, ec: ExportConfig, meta: dict[str, str]) -> None:
+def _export_stamped(module, args, path: Path, ec: ExportConfig, meta: dict[str, str]) -> onnx.ModelProto:
     """Export and stamp the metadata; `check_graph` comes after every export (`export_checkpoint`)."""
     _export_one(module, args, path, ec.opset, ec.dynamic_batch)
     m = onnx.load(str(path))
     for k, v in meta.items():
         m.metadata_props.append(onnx.StringStringEntryProto(key=k, value=v))
     onnx.save(m, str(path))
+    return m
 
 
 def _declare_output_shapes(path: Path, module, args, dynamic_batch: bool) -> None:
@@ -214,8 +215,8 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         meta = {"d3lvo_stage": name, "d3lvo_format": MANIFEST_FORMAT, "d3lvo_version": d3lvo_deploy.__version__,
                 "d3lvo_config": json.dumps(cfg.to_dict()), "d3lvo_input_size": f"{w}x{h}"}
         path = files[name]
-        _export_stamped(module.eval(), inputs[name], path, ec, meta)
-        if any(n.op_type == "GridSample" for n in all_nodes(onnx.load(str(path)).graph)):
+        m = _export_stamped(module.eval(), inputs[name], path, ec, meta)
+        if any(n.op_type == "GridSample" for n in all_nodes(m.graph)):
             # onnxruntime's own graph: the same stage with its bilinear samples as Gathers
             own_files[name] = path.with_name(f"{name}.onnxruntime.onnx")
             with gathered():

@@ -133,6 +133,15 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
     assert r.exit_code != 0 and "--threads" in r.output and "--precision" not in r.output, r.output
 
 
+def test_cli_bench_refuses_a_backend_list_without_an_engine():
+    """An unknown engine, or a --backend that names none, is one line before anything is exported
+    or timed (an empty list would otherwise reach the timing with nothing to time)."""
+    for value, shown in (("foo", "'foo'"), (",", "','"), ("onnxruntime,bar", "'bar'")):
+        r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--backend", value])
+        assert r.exit_code == 1 and "--backend takes onnxruntime, openvino" in r.output and shown in r.output, r.output
+        assert "Traceback" not in r.output
+
+
 def test_conv_bench_finds_every_conv_once():
     """Each Conv2d of the network runs once per frame pair (complete, encode, flow_pose), except the
     Gauss-Newton head's feature projections, which run on both frames: the recorded calls add up
