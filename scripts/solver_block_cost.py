@@ -34,17 +34,14 @@ import onnx
 import torch
 
 import models.point_solver as ps
+from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
 from d3lvo_deploy.cpu import cpu_info
 from models.checkpoint import build_model, load_checkpoint
 from models.predict import predict_sequence
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared/data/kitti_raw_snippet/sequences/r0926"
-BUNDLED = Path(__file__).resolve().parents[1] / "d3lvo_deploy/default_model/default.pt"
-
-
 def finest_block_inputs(seq: Path) -> list:
     """gn_steps' arguments of the block with the largest image, from the bundled model in torch."""
-    model = build_model(load_checkpoint(BUNDLED))
+    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
     kept: dict[str, list] = {}
     steps = ps.gn_steps
 
@@ -96,10 +93,12 @@ def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path):
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("seq", nargs="?", type=Path, default=REAL)
+    p.add_argument("seq", nargs="?", type=Path, default=find_real_frames())
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--runs", type=int, default=300)
     a = p.parse_args(argv)
+    if a.seq is None:
+        sys.exit("error: give SEQ (a KITTI odometry sequence): ../shared/data has no real frames here")
     if not (a.seq / "image_2").is_dir():
         sys.exit(f"error: {a.seq}: no image_2/ folder (a KITTI odometry sequence is needed)")
     torch.set_num_threads(2)
