@@ -230,6 +230,10 @@ MUTATIONS = [
              'if precision != "fp32" and ckpt is None and not default_network:',
              'if precision != "fp32" and ckpt is None:',
              ("tests/test_bench.py::test_cli_bench_size_needs_both_and_no_fixed_folder",)),
+    Mutation("the runtime imports onnxruntime with its module, before an export's traces", "d3lvo_deploy/backends.py",
+             "from .errors import D3LVOInputError\n",
+             "import onnxruntime  # noqa: F401\nfrom .errors import D3LVOInputError\n",
+             ("tests/test_export.py::test_export_and_bench_load_no_engine_before_exporting",)),
 ]
 
 

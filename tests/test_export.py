@@ -323,3 +323,20 @@ def test_reduced_precision_exports(small_model, small_synth, tmp_path, precision
     r_err = float(np.degrees(rotation_angle_precise(E[:, :3, :3])).max())
     bound_t = 1e-3 if precision == "fp16" else 0.05  # fraction of the path length
     assert t_err <= bound_t * path and r_err <= (0.05 if precision == "fp16" else 1.0), (t_err, path, r_err)
+
+
+def test_export_and_bench_load_no_engine_before_exporting():
+    """`d3lvo export` and `d3lvo bench --ckpt` trace their graphs before any engine is loaded:
+    importing their commands and the exporter, in a fresh process, loads neither onnxruntime nor
+    OpenVINO (once either pybind11 module is in a process, torch's exporter traces ~1.5x slower,
+    docs/export-and-parity.md)."""
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    code = ("import sys, cli.main, cli.export_cmd, cli.bench_cmd, export.onnx_export, d3lvo_deploy.bench; "
+            "print(sorted(m for m in ('onnxruntime', 'openvino') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "[]", r.stdout
