@@ -143,11 +143,10 @@ def bench_command(
     # without --backend, every installed engine, listed after any export: listing imports OpenVINO,
     # whose pybind11 module slows torch's exporter (docs/export-and-parity.md)
     engines = None if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
-    if engines == []:
-        raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {backend!r}")
+    unknown = [] if engines is None else [b for b in engines or [backend] if b not in BACKENDS]
+    if unknown:  # an engine we do not know, or a list that names none
+        raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {unknown[0]!r}")
     for b in BACKENDS if engines is None else engines:
-        if b not in BACKENDS:
-            raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {b!r}")
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
     if engines is not None and "openvino" in engines:
         from d3lvo_deploy.extras import require
