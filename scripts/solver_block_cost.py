@@ -12,7 +12,9 @@ inputs, taking turns:
 - as shipped;
 - without the exposure match (`pt_affine` off: frame t's grey against frame t-1's as it is);
 - with the 6x6 solve replaced by a stand-in of one op (g divided by H's diagonal): not a
-  solver, only what the block costs without one.
+  solver, only what the block costs without one;
+- with the Huber threshold's median (a TopK partial sort of every point's residual) replaced by
+  the masked mean: what the median costs.
 
 Figures: docs/performance.md.
 """
@@ -65,17 +67,23 @@ def finest_block_inputs(seq: Path) -> list:
     return kept["args"]
 
 
-def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path):
-    """The block exported as the Loop's body with `solve` for the 6x6 system, opened as the
-    runtime opens a stage; returns (session, feeds, graph ops)."""
+def masked_mean(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """A stand-in for `masked_median` without its partial sort (not a robust scale)."""
+    return (a * mask).sum(-1, keepdim=True) / mask.sum(-1, keepdim=True).clamp(min=1.0)
+
+
+def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path, median=None):
+    """The block exported as the Loop's body with `solve` for the 6x6 system (and `median` for
+    the Huber threshold's, if given), opened as the runtime opens a stage; returns (session,
+    feeds, graph ops)."""
     from d3lvo_deploy.backends import OpenVinoSession, SessionConfig
     from export.solver_loop import _Block
 
     n_in = 14  # gn_steps' tensors; then the steps, the settings and the sampling layout
     Xh, stack = args[2], args[4]
     layout = (Xh.shape[0] // stack.shape[0], 3, Xh.shape[-1])  # as `block_graph` passes it
-    shipped = ps.scaled_solve
-    ps.scaled_solve = solve
+    shipped = ps.scaled_solve, ps.masked_median
+    ps.scaled_solve, ps.masked_median = solve, median or ps.masked_median
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -83,7 +91,7 @@ def compiled_block(args: list, settings: ps.SolverSettings, solve, path: Path):
                               str(path), input_names=[f"in{j}" for j in range(n_in)],
                               dynamic_axes={"in4": {2: "h", 3: "w"}}, opset_version=17, dynamo=False)
     finally:
-        ps.scaled_solve = shipped
+        ps.scaled_solve, ps.masked_median = shipped
     ops = sum(n.op_type != "Constant" for n in onnx.load(str(path)).graph.node)
     session = OpenVinoSession(path, SessionConfig(threads=2, backend="openvino"), "flowpose")
     names = {name for name, _ in session.inputs}
@@ -114,6 +122,8 @@ def main(argv: list[str] | None = None) -> None:
                                                          Path(tmp) / "b.onnx"),
             "solve replaced by one op": compiled_block(args, settings, lambda Hb, d: Hb[:, :, 6:] / d,
                                                        Path(tmp) / "c.onnx"),
+            "median replaced by a mean": compiled_block(args, settings, ps.scaled_solve, Path(tmp) / "d.onnx",
+                                                        median=masked_mean),
         }
         times: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(a.rounds):
