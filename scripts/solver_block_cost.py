@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import statistics
 import sys
 import tempfile
@@ -41,6 +40,7 @@ from d3lvo_deploy.cpu import cpu_info
 from models.checkpoint import build_model, load_checkpoint
 from models.predict import predict_sequence
 
+
 def finest_block_inputs(seq: Path) -> list:
     """gn_steps' arguments of the block with the largest image, from the bundled model in torch."""
     model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
@@ -52,18 +52,12 @@ def finest_block_inputs(seq: Path) -> list:
             kept["args"] = [x.clone() if torch.is_tensor(x) else x for x in a]
         return steps(*a, **k)
 
-    with tempfile.TemporaryDirectory() as tmp:
-        for sub in ("image_2", "velodyne"):
-            (Path(tmp) / sub).mkdir()
-            for f in sorted((seq / sub).iterdir())[:3]:
-                shutil.copy(f, Path(tmp) / sub / f.name)
-        shutil.copy(seq / "calib.txt", Path(tmp) / "calib.txt")
-        ps.gn_steps = record
-        try:
-            with torch.no_grad():
-                predict_sequence(model, tmp)
-        finally:
-            ps.gn_steps = steps
+    ps.gn_steps = record
+    try:
+        with torch.no_grad():
+            predict_sequence(model, seq, end=3)
+    finally:
+        ps.gn_steps = steps
     return kept["args"]
 
 
