@@ -60,6 +60,22 @@ def _stage_gflops(onnx: Path, manifest: dict) -> dict[str, float]:
     return out
 
 
+def _row_gflops(stage_gflops: dict[str, float], beside: bool) -> dict[str, float]:
+    """The GFLOP of each row of the bench's table from the manifest's stages: with the classical
+    solve timed beside (`BESIDE_ROW`), its graph's and the flow+pose graph that takes its pose;
+    the total, of the graphs a frame runs."""
+    from d3lvo_deploy.backends import BESIDE_STAGE, WEIGHTED_STAGE
+    from d3lvo_deploy.bench import BESIDE_ROW
+
+    graphs = {"completion": "completion", "encoder": "encoder", "flowpose": WEIGHTED_STAGE if beside else "flowpose"}
+    if beside:
+        graphs[BESIDE_ROW] = BESIDE_STAGE
+    rows = {row: stage_gflops[g] for row, g in graphs.items() if g in stage_gflops}
+    if rows:
+        rows["total"] = sum(rows.values())
+    return rows
+
+
 def _torch_streams(manifest: dict, seq, threads: int, eager: bool, compile: bool, frames: list) -> dict:
     """torch eager and torch.compile on the exported model's config, warmed up (compiled), ready to
     take turns with the engines; none when torch is not installed."""
@@ -278,7 +294,7 @@ def bench_command(
 
 
 def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict | None, top_ops) -> None:
-    from d3lvo_deploy.bench import BENCH_STAGES
+    from d3lvo_deploy.bench import BENCH_STAGES, BESIDE_ROW
 
     from d3lvo_deploy.cpu import CpuInfo
 
@@ -299,11 +315,11 @@ def _print_report(res: dict, timed: dict, torch_t: dict | None, compiled_t: dict
     if compiled_t:
         t.add_column("torch.compile", justify="right")
     t.add_column(f"{res['best_backend']} GFLOP/s (% peak)", justify="right")
-    gf = res["stage_gflops"]
+    gf = _row_gflops(res["stage_gflops"], any(BESIDE_ROW in tb for tb in timed.values()))
     for k in BENCH_STAGES:
         if not any(k in tb for tb in timed.values()):
             continue
-        flops = sum(gf.values()) if k == "total" and gf else gf.get(k)
+        flops = gf.get(k)
         row = [k, "" if flops is None else f"{flops:.2f}"]
         for tb in timed.values():
             row += [f"{tb[k][q]:.1f}" if k in tb else "" for q in ("median", "p90", "max")]

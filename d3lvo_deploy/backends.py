@@ -28,6 +28,9 @@ AUTO = "auto"
 # (README, precision table), as fp16 exports keep that stage in fp32 for the same reason.
 OV_PRECISIONS = ("f32", "bf16")
 REDUCED_PRECISION_STAGES = ("completion", "encoder")
+# the stage a run solves beside the others, on a thread of its own (`SessionConfig.solves_beside`)
+BESIDE_STAGE = "classical"
+WEIGHTED_STAGE = "flowpose_weighted"  # the flow+pose graph that takes that stage's pose
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
 # onnxruntime's GraphOptimizationLevel members, by the names --optimization takes
@@ -89,6 +92,9 @@ class SessionConfig:
     flowpose_threads: int = 0
     # threads of a frame's CPU half (`Odometry.prepare`); 0: `preparing_threads` decides
     prepare_threads: int = 0
+    # where the model folder has the `classical` stage: solve the classical mode on a thread of its
+    # own beside completion and encoder (`solves_beside`)
+    classical_beside: bool = True
 
     @property
     def engine_threads(self) -> int:
@@ -117,11 +123,23 @@ class SessionConfig:
             return self.prepare_threads
         return 2 if self.threads_taken >= 2 else 1
 
+    @property
+    def solves_beside(self) -> bool:
+        """The classical mode's solve runs on a thread of its own while completion and encoder run
+        (`Odometry`, where the model folder has the `classical` stage): with two cores or more. The
+        solve's steps are thousands of small ops on one thread whichever the stage's thread count,
+        so they take the second core that the network's other stages use least
+        (docs/performance.md)."""
+        return self.classical_beside and self.threads_taken >= 2
+
     def for_stage(self, stage: str) -> "SessionConfig":
         """The settings one stage's session opens with (and nothing else: two runs whose stage
-        settings are equal share the stage's session, compiled graph and cache)."""
-        threads = self.flowpose_threads if stage == "flowpose" and self.flowpose_threads else self.threads
-        return replace(self, threads=threads, flowpose_threads=0, prepare_threads=0)
+        settings are equal share the stage's session, compiled graph and cache). `classical`
+        runs on one thread, beside the others."""
+        threads = self.flowpose_threads if stage.startswith("flowpose") and self.flowpose_threads else self.threads
+        if stage == BESIDE_STAGE:
+            threads = 1
+        return replace(self, threads=threads, flowpose_threads=0, prepare_threads=0, classical_beside=True)
 
     def pipelined(self, depth: int = 2) -> "SessionConfig":
         """For a pipeline (`d3lvo run --pipeline`): the flow+pose stage one thread short of the
@@ -134,7 +152,10 @@ class SessionConfig:
         n = self.threads_taken
         if n < 2:
             return self
-        return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads, prepare_threads=1)
+        # three deep, the reader's core runs completion and encoder: the classical solve stays in the
+        # flow+pose graph's batch
+        return replace(self, flowpose_threads=n - 1, threads=1 if depth == 3 else self.threads, prepare_threads=1,
+                       classical_beside=self.classical_beside and depth < 3)
 
     def resolved(self) -> "SessionConfig":
         """The same settings with "auto" replaced by the engine it picks here."""
@@ -219,8 +240,28 @@ def openvino_compiled(sc: SessionConfig, manifest: dict) -> bool:
     cache = openvino_cache_dir(openvino.__version__)
     if cache is None:
         return False
-    return all((cache / _marker(sc.for_stage(n), n, st["sha256"])).is_file()
-               for n, st in manifest.get("stages", {}).items())
+    stages = manifest.get("stages", {})
+    return all((cache / _marker(c, n, stages[n]["sha256"])).is_file() for n, c in stage_configs(stages, sc).items())
+
+
+def stage_configs(stages, sc: SessionConfig) -> dict[str, SessionConfig]:
+    """The stages of a model folder (names, in the manifest's order) that a run with `sc` opens,
+    each with the settings its session opens with (`SessionConfig.for_stage`). Where the run
+    solves the classical mode beside (`SessionConfig.solves_beside`) and the folder has that
+    stage: `classical` (one thread) and `flowpose_weighted` in place of `flowpose`, and completion
+    and encoder one thread short, which leaves the classical solve a core of its own while they
+    run (sharing it, they took longer than the solve saved, docs/performance.md); else `flowpose`."""
+    names = list(stages)
+    beside = sc.solves_beside and BESIDE_STAGE in names and WEIGHTED_STAGE in names
+    unused = {"flowpose"} if beside else {BESIDE_STAGE, WEIGHTED_STAGE}
+    out = {}
+    for n in names:
+        if n in unused:
+            continue
+        out[n] = sc.for_stage(n)
+        if beside and n in ("completion", "encoder"):
+            out[n] = replace(out[n], threads=max(1, sc.threads_taken - 1))
+    return out
 
 
 def available_backends() -> list[str]:
@@ -315,6 +356,8 @@ class OpenVinoSession:
             OpenVinoSession._core = ov.Core()
         precision = sc.ov_precision if stage in REDUCED_PRECISION_STAGES else "f32"
         config = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": "1", "INFERENCE_PRECISION_HINT": precision}
+        if stage == BESIDE_STAGE:  # unpinned: pinned, its thread shared a core with another stage's
+            config["ENABLE_CPU_PINNING"] = False
         if sc.engine_threads:
             config["INFERENCE_NUM_THREADS"] = str(sc.engine_threads)
         cache = openvino_cache_dir(ov.__version__)

@@ -15,7 +15,10 @@ from .onnx_model import SessionConfig, StageModel
 from .pipeline import engine_depth
 from .sequence import KittiSequence
 
-BENCH_STAGES = ("project", "completion", "encoder", "flowpose", "total")
+# a stage that runs on another thread beside the others (`FrameTiming.beside`): timed, but not part
+# of the frame's total, which is its wall time
+BESIDE_ROW = "classical (beside)"
+BENCH_STAGES = ("project", "completion", "encoder", BESIDE_ROW, "flowpose", "total")
 TURN_FRAMES = 5  # frames a stream runs before the next one's turn (`take_turns`)
 ENGINE_WARMUP = 3  # untimed frames per engine first (`warm_up`): first-call allocations, caches
 
@@ -28,7 +31,7 @@ class StageTimes:
     def add(self, ms: dict[str, float]) -> None:
         for k, v in ms.items():
             self.samples.setdefault(k, []).append(v)
-        self.samples["total"].append(sum(v for k, v in ms.items() if k != "total"))
+        self.samples["total"].append(sum(v for k, v in ms.items() if k not in ("total", BESIDE_ROW)))
 
     def summary(self) -> dict[str, dict[str, float]]:
         out = {}
@@ -67,7 +70,8 @@ class EngineStream:
     def __call__(self) -> dict[str, float]:
         self.odo.step(*self.frames[self.k % len(self.frames)])
         self.k += 1
-        return dict(self.odo.last_timing.ms)
+        timing = self.odo.last_timing
+        return {**timing.ms, **({BESIDE_ROW: sum(timing.beside.values())} if timing.beside else {})}
 
     def finish(self, times: StageTimes, runs: int) -> None:
         """Ends profiling, or else times the same stream pipelined (`pipelined_fps`), with the
@@ -76,10 +80,7 @@ class EngineStream:
             self.model.end_profiling()
         else:
             depth = engine_depth(self.model.backend, self.sc.pipelined(3) != self.sc)  # as a run decides
-            sc = self.sc.pipelined(depth)
-            changed = [n for n in self.model.sessions if sc.for_stage(n) != self.sc.for_stage(n)]
-            for stage in changed:  # a pipelined run's threads: those stages opened again
-                self.model.open_stage(stage, sc)
+            changed = self.model.open_for(self.sc.pipelined(depth))  # a pipelined run's threads and stages
             if changed:
                 warm_up([self], ENGINE_WARMUP)
             times.pipelined_fps = pipelined_fps(self.odo, self.frames, runs, depth)

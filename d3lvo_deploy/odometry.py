@@ -22,8 +22,9 @@ from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, relative
-from .onnx_model import SessionConfig, StageModel, camera_inputs
-from .points import SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds, textured_points
+from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
+from .points import (CLASSICAL_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds,
+                     textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 STAGES = ("project", "completion", "encoder", "flowpose")
@@ -71,6 +72,10 @@ class PreparedFrame:
 @dataclass
 class FrameTiming:
     ms: dict[str, float] = field(default_factory=dict)
+    # stages that ran on another thread beside those in `ms` (the classical solve beside completion
+    # and encoder): their time is in the frame's wall time only where the flow+pose stage waited
+    # for them, and so in its figure
+    beside: dict[str, float] = field(default_factory=dict)
 
     @property
     def total(self) -> float:
@@ -220,22 +225,39 @@ class Odometry:
         """`step` on a frame `prepare` has already done (by a pipeline's reader thread).
         `on_encoded` runs between the encoder and the flow+pose stage: a pipeline starts preparing
         the next frame there, beside the solver (one thread on OpenVINO), rather than beside completion
-        and encoder, which use every core."""
+        and encoder, which use every core. Where the model solves its classical mode beside
+        (`StageModel.beside`), that solve starts first, on the helper thread, and runs while
+        completion and encoder do."""
+        beside = self._start_classical(frame.solver)
         enc = self.encode_prepared(frame)
         if on_encoded is not None:
             on_encoded()
-        return self._pose_step(enc)
+        return self._pose_step(enc, beside)
 
     def step_encoded(self, enc: dict[str, np.ndarray], times: dict[str, float]) -> np.ndarray:
         """`step` on a frame a pipeline's reader thread has prepared and encoded (`encode_timed`)."""
         self.last_timing = FrameTiming(dict(times))
         return self._pose_step(enc)
 
-    def _pose_step(self, enc: dict[str, np.ndarray]) -> np.ndarray:
-        """The flow+pose half of a step: the pair (previous frame, `enc`), then `enc` is the previous."""
+    def _start_classical(self, solver: SolverFrame | None) -> "_Beside | None":
+        """The pair's inputs and, started on the helper thread, its classical solve (the `classical`
+        stage), where the model solves it beside; None where not, or for the first frame."""
+        if not self.model.beside or self._prev is None or solver is None:
+            return None
+        inputs = self._pair_inputs(solver)
+
+        def solve() -> tuple[np.ndarray, float]:
+            t0 = time.perf_counter()
+            return self.model.solve_classical(inputs), (time.perf_counter() - t0) * 1000
+
+        return _Beside(inputs, self._helper.submit(solve))
+
+    def _pose_step(self, enc: dict[str, np.ndarray], beside: "_Beside | None" = None) -> np.ndarray:
+        """The flow+pose half of a step: the pair (previous frame, `enc`), then `enc` is the previous.
+        `beside`: the pair's inputs and its classical solve, started by `_start_classical`."""
         t0 = time.perf_counter()
         if self._prev is not None:
-            out = self._flow_pose(enc)
+            out = self._flow_pose(enc, beside)
             if self.keep_outputs:
                 self.last["flowpose"] = out
             A2 = out["matrix"][0].astype(np.float64)
@@ -255,19 +277,30 @@ class Odometry:
         self.frames += 1
         return self.pose.copy()
 
-    def _flow_pose(self, enc: dict) -> dict[str, np.ndarray]:
-        """The flow+pose stage on (previous frame, `enc`) from `motion2`; the first pair of a
-        point-solver graph, which has no previous motion, from the classical tracker's solve from
-        `cold_start`'s guesses (`direct.first_motion`)."""
+    def _flow_pose(self, enc: dict, beside: "_Beside | None" = None) -> dict[str, np.ndarray]:
+        """The flow+pose stage on (previous frame, `enc`); with the classical mode solved beside,
+        that solve's pose as an input (solved here where no `beside` started it)."""
         if not self.model.geometric:
             return self.model.flow_pose(self._prev, enc, None)
+        if beside is None:  # with the classical mode solved beside, `flow_pose` solves it first
+            inputs = self._pair_inputs(enc.get("solver_frame"))
+        else:
+            pose, ms = beside.solve.result()
+            inputs = {**beside.inputs, CLASSICAL_INPUT: pose}
+            self.last_timing.beside[BESIDE_STAGE] = ms
+        return self.model.flow_pose(self._prev, enc, inputs)
+
+    def _pair_inputs(self, solver: SolverFrame | None) -> dict[str, np.ndarray]:
+        """The pair's camera and solver inputs (frame t's solver frame `solver`), from `motion2`;
+        the first pair of a point-solver graph, which has no previous motion, from the classical
+        tracker's solve from `cold_start`'s guesses (`direct.first_motion`)."""
         feeds, start = {}, self.motion2
         if self.model.point_solver:
-            prev, cur = self._prev["solver_frame"], enc["solver_frame"]
-            feeds = solver_feeds(prev, cur, self.calib.K2, self.points.capacity)
+            prev = self._prev["solver_frame"]
+            feeds = solver_feeds(prev, solver, self.calib.K2, self.points.capacity)
             if self.cold and len(prev.points):
-                start = cold_start_motion(prev, cur, self.calib.K2, self.model.config, self.cold_start)
-        return self.model.flow_pose(self._prev, enc, {**camera_inputs(self.pre.K, start), **feeds})
+                start = cold_start_motion(prev, solver, self.calib.K2, self.model.config, self.cold_start)
+        return {**camera_inputs(self.pre.K, start), **feeds}
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
@@ -287,6 +320,14 @@ class Odometry:
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:
         """The image_2 motion between two cam0 poses: the Gauss-Newton head's next start."""
         return change_frame(relative(before, after), self.calib.T_cam2_cam0)
+
+
+@dataclass
+class _Beside:
+    """A pair's flow+pose inputs and its classical solve running on the helper thread (a future
+    of (pose, ms))."""
+    inputs: dict[str, np.ndarray]
+    solve: Any
 
 
 def cold_start_motion(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, model_config: dict,

@@ -18,15 +18,16 @@ import numpy as np
 # re-exported for code that imports them from here
 from .backends import (OPT_LEVELS, PROVIDERS, OpenVinoSession, OrtSession, SessionConfig,  # noqa: F401
                        open_session)
+from .backends import BESIDE_STAGE, WEIGHTED_STAGE, stage_configs
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import for_engine, load_manifest
-from .points import SCAN_DEPTH_INPUT
+from .points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
 
 # the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
 # point solver's image pyramids `image1_pK`, `stack2_pK` too)
 CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics",
-                            SCAN_DEPTH_INPUT)
+                            SCAN_DEPTH_INPUT, CLASSICAL_INPUT)
 
 
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:
@@ -70,22 +71,40 @@ class StageModel:
         self.sessions: dict[str, OrtSession | OpenVinoSession] = {}
         # the point solver: the runtime hands it both grey images and frame t-1's LiDAR point list
         self.point_solver = _point_solver(self.manifest["stages"].get("flowpose", {}))
-        for name in self.manifest["stages"]:
-            self.open_stage(name, sc)
+        self.beside = False  # the classical mode solved by its own stage (`solve_classical`)
+        self._settings: dict[str, SessionConfig] = {}  # each open stage's settings
+        self.open_for(sc)
         # read once, not per frame: the encoder also takes the LiDAR returns (`sparse_invdepth`, for
         # the solver); the flow+pose graph is the Gauss-Newton head (takes intrinsics, init_pose)
         self.encoder_takes_lidar = "sparse_invdepth" in self.input_names("encoder")
         self.geometric = "init_pose" in self.input_names("flowpose")
 
+    def open_for(self, sc: SessionConfig) -> list[str]:
+        """Opens the stages a run with `sc` uses (`stage_configs`: with the classical mode solved
+        beside the others, its stage and the flow+pose graph that takes its pose, else the flow+pose
+        graph that solves both), where not open with those settings already (the bench's pipelined
+        stream); returns the stages opened."""
+        configs = stage_configs(self.manifest["stages"], replace(sc, backend=self.backend))
+        opened = [name for name, c in configs.items() if self._settings.get(name) != c]
+        for name in opened:
+            self.open_stage(name, configs[name])
+        self.beside = BESIDE_STAGE in configs
+        return opened
+
+    def _graph(self, stage: str) -> str:
+        """The session that runs `stage`: the flow+pose stage's is `flowpose_weighted` while the
+        classical mode is solved beside."""
+        return WEIGHTED_STAGE if stage == "flowpose" and self.beside else stage
+
     def open_stage(self, stage: str, sc: SessionConfig) -> None:
-        """Opens `stage`'s session on this model's engine with `sc`'s settings for it, checked
-        against the manifest; again, with other settings, for the bench's pipelined stream
-        (`SessionConfig.pipelined`)."""
+        """Opens `stage`'s session on this model's engine with its settings `sc` (`stage_configs`),
+        checked against the manifest."""
         st = for_engine(self.manifest["stages"][stage], self.backend)
         path = self.dir / st["file"]
-        sess = open_session(path, replace(sc, backend=self.backend).for_stage(stage), stage, st)
+        sess = open_session(path, replace(sc, backend=self.backend), stage, st)
         self._check_io(path, sess, st)
         self.sessions[stage] = sess
+        self._settings[stage] = sc
 
     @staticmethod
     def _check_io(path: Path, sess, st: dict) -> None:
@@ -100,14 +119,20 @@ class StageModel:
             raise D3LVOInputError(path, "input shapes differ from manifest.json")
 
     def output_names(self, stage: str) -> list[str]:
-        return self.sessions[stage].outputs
+        return self.sessions[self._graph(stage)].outputs
 
     def input_names(self, stage: str) -> list[str]:
-        return [n for n, _ in self.sessions[stage].inputs]
+        return [n for n, _ in self.sessions[self._graph(stage)].inputs]
 
     def run(self, stage: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        outs = self.sessions[stage].run(feeds)
+        outs = self.sessions[self._graph(stage)].run(feeds)
         return dict(zip(self.output_names(stage), outs))
+
+    def solve_classical(self, solver_inputs: dict[str, np.ndarray]) -> np.ndarray:
+        """The classical mode's pose of the pair ((1,4,4), `CLASSICAL_INPUT`) from the flow+pose
+        graph's solver inputs and `init_pose` (`Odometry`, on its helper thread)."""
+        names = self.input_names(BESIDE_STAGE)
+        return self.run(BESIDE_STAGE, {n: solver_inputs[n] for n in names})[CLASSICAL_INPUT]
 
     def complete(self, rgb_norm: np.ndarray, sparse_inv: np.ndarray) -> np.ndarray:
         """Normalised RGB + sparse inverse depth -> dense inverse depth (see export.stages)."""
@@ -131,7 +156,11 @@ class StageModel:
 
     def flow_pose(self, prev: dict[str, np.ndarray], cur: dict[str, np.ndarray],
                   camera: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-        """`camera`: `camera_inputs(K, init)`, for the Gauss-Newton head."""
+        """`camera`: `camera_inputs(K, init)`, for the Gauss-Newton head (and the point solver's
+        feeds). With the classical mode solved beside (`beside`), its pose from `camera` where the
+        caller solved it (`Odometry`, on another thread), else solved here first."""
+        if self.beside and camera is not None and CLASSICAL_INPUT not in camera:
+            camera = {**camera, CLASSICAL_INPUT: self.solve_classical(camera)}
         return self.run("flowpose", flowpose_feeds(self.input_names("flowpose"), prev, cur, camera))
 
     def end_profiling(self) -> list[str]:

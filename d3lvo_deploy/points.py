@@ -18,6 +18,9 @@ from .projection import rows_in_depth, sparse_depth
 # the flow+pose graph's input for frame t's LiDAR depth, where it checks the finest level's restart
 # against the scan (`pt_restart_depth`)
 SCAN_DEPTH_INPUT = "scan_depth2"
+# the classical mode's pose of the pair (frame t in frame t-1, (1,4,4)): the `classical` stage's
+# output and, where a model folder has that stage, an input of its `flowpose_weighted` graph
+CLASSICAL_INPUT = "classical_pose"
 
 
 @dataclass

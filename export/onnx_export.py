@@ -1,5 +1,8 @@
 """`d3lvo export`: checkpoint -> completion.onnx, encoder.onnx, flowpose.onnx (+ flowpose.onnxruntime.onnx) + manifest.json.
 
+A point-solver model that also solves its classical mode gets classical.onnx and
+flowpose_weighted.onnx too (each with its onnxruntime graph; `export.stages`).
+
 Uses torch's TorchScript-based exporter (`dynamo=False`): it needs no extra package, freezes the
 static shapes we want (the adaptive pooling bins are computed at export size), and emits only
 standard ONNX ops for this model. Every graph is checked: `onnx.checker` with full_check, a walk
@@ -33,7 +36,7 @@ from models.pose_gn import nominal_intrinsics
 
 from .flops import graph_flops
 from .solver_loop import has_placeholders, splice_loops
-from .stages import CompletionStage, EncoderStage, FlowPoseStage
+from .stages import ClassicalStage, CompletionStage, EncoderStage, FlowPoseStage, splits_classical
 
 DEFAULT_OPSET = 17  # GridSample needs 16+
 
@@ -90,11 +93,17 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
     if model.cfg.point_solver:
         camera.update(_solver_sample(model, h, w, g))
     flowpose = [camera[n] if n in camera else enc_by[n.replace("1_", "_").replace("2_", "_")] for n in fp.input_names]
-    return {
+    out = {
         "completion": (rgb, inv),
         "encoder": enc_in,
         "flowpose": tuple(flowpose),
     }
+    if splits_classical(model):
+        classical = ClassicalStage(model)
+        out["classical"] = tuple(camera[n] for n in classical.input_names)
+        with torch.no_grad():
+            out["flowpose_weighted"] = (*flowpose, classical(*out["classical"]))
+    return out
 
 
 def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str, torch.Tensor]:
@@ -179,7 +188,7 @@ def check_graph(path: Path) -> onnx.ModelProto:
 
 
 def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict:
-    """Export the three stages and write manifest.json; returns the manifest."""
+    """Export the stages and write manifest.json; returns the manifest."""
     ck = load_checkpoint(ckpt)
     cfg = ck["config"]
     h, w = ec.height or cfg.height, ec.width or cfg.width
@@ -203,6 +212,8 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         raise D3LVOInputError(out, f"output folder is not writable ({e.strerror})") from None
 
     stages = {"completion": CompletionStage(model), "encoder": EncoderStage(model), "flowpose": FlowPoseStage(model)}
+    if splits_classical(model):
+        stages.update(classical=ClassicalStage(model), flowpose_weighted=FlowPoseStage(model, weighted=True))
     if not cfg.learned_completion:
         del stages["completion"]  # identity (rgb_sparse), IP-Basic in numpy, or no depth (rgb)
     inputs = _sample_inputs(model, h, w)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import onnx
 
+from d3lvo_deploy.backends import BESIDE_STAGE, WEIGHTED_STAGE
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.manifest import load_manifest
@@ -100,8 +101,9 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         src, dst = fp32_dir / st["file"], out_dir / st["file"]
         stage_precision = precision
         point_solver = manifest["model_config"].get("pose_head") == "points"
+        solves = name in ("flowpose", BESIDE_STAGE, WEIGHTED_STAGE)  # the flow+pose graphs, the classical solve's
         if (precision == "fp16" and name == "flowpose" and manifest["model_config"].get("pose_head") != "mlp"
-                and manifest["depth_input"] != "none") or (name == "flowpose" and point_solver):
+                and manifest["depth_input"] != "none") or (solves and point_solver):
             # the Gauss-Newton head stays FP32: its normal equations sum thousands of squared
             # gradients (past FP16's 65504) and its Cholesky and epsilons need more than 11 bits;
             # converted (solver nodes blocked or not) it returned non-finite poses on real frames.

@@ -1,7 +1,10 @@
-"""The three deployment stages as modules with flat, named tensor inputs and outputs.
+"""The deployment stages as modules with flat, named tensor inputs and outputs.
 
 Splitting at these points lets the runtime complete and encode each frame exactly once and
-reuse frame t's encoder outputs as frame t-1 of the next pair. The stages exchange what the
+reuse frame t's encoder outputs as frame t-1 of the next pair. A point-solver model that also
+solves its classical mode (`pt_select`) gets two more: that solve alone (`classical`), which reads
+no network output and so runs on a core of its own beside completion and encoder, and the flow+pose
+graph that takes its pose (`flowpose_weighted`). The stages exchange what the
 network computes with: ImageNet-normalised RGB (`rgb_norm`) and inverse depth (min_depth / d,
 0 = no return), made by the runtime's preprocessing in the same pass that crops the image and
 projects the scan (d3lvo_deploy.frames.FramePreprocessor.rgb_input / invdepth_input).
@@ -11,7 +14,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+from d3lvo_deploy.points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
 from models.d3lvo import D3LVO
 from models.point_solver import pyramid_input_names
 
@@ -29,6 +32,16 @@ SOLVER_INPUTS = ("points1", "point_mask1", "image_intrinsics")
 def solver_input_names(model: D3LVO) -> list[str]:
     grey1, stack2 = pyramid_input_names(len(model.cfg.pt_iters))
     return grey1 + stack2 + list(SOLVER_INPUTS) + ([SCAN_DEPTH_INPUT] if model.cfg.checks_restart_on_scan else [])
+
+
+def splits_classical(model: D3LVO) -> bool:
+    """The model solves its classical mode beside the weighted solve: export `classical` and
+    `flowpose_weighted` too."""
+    return model.cfg.point_solver and model.cfg.pt_select > 0
+
+
+def classical_input_names(model: D3LVO) -> list[str]:
+    return solver_input_names(model) + ["init_pose"]
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:
@@ -103,18 +116,23 @@ class EncoderStage(nn.Module):
 
 
 class FlowPoseStage(nn.Module):
-    """Both frames' pyramids (+ frame t-1 depth) -> flows, per-level poses and weights, final pose."""
+    """Both frames' pyramids (+ frame t-1 depth) -> flows, per-level poses and weights, final pose.
+    `weighted`: the classical mode's pose is an input (`ClassicalStage`'s output) rather than
+    solved here; the outputs are the same."""
 
-    def __init__(self, model: D3LVO):
+    def __init__(self, model: D3LVO, weighted: bool = False):
         super().__init__()
         self.model = model
-        self.input_names = flowpose_input_names(model)
+        self.input_names = flowpose_input_names(model) + ([CLASSICAL_INPUT] if weighted else [])
         self.output_names = flowpose_output_names(model)
 
     def forward(self, *tensors):
         byname = dict(zip(self.input_names, tensors))
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
-        solver = {k: byname[k] for k in solver_input_names(self.model)} if self.model.cfg.point_solver else None
+        solver = None
+        if self.model.cfg.point_solver:
+            names = solver_input_names(self.model) + ([CLASSICAL_INPUT] if CLASSICAL_INPUT in byname else [])
+            solver = {k: byname[k] for k in names}
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
                                    levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))
@@ -122,3 +140,20 @@ class FlowPoseStage(nn.Module):
         start = [out["start_next"]] if "start_next" in out else []
         return (*out["flows"], *out.get("confidence", []), *extra, out["poses"], out["weights"], out["pose"],
                 out["matrix"], *start)
+
+
+class ClassicalStage(nn.Module):
+    """The solver's inputs and the start (`init_pose`) -> the classical mode's pose (`CLASSICAL_INPUT`,
+    (B,4,4) frame t in frame t-1): `PointPose.classical_solve`."""
+
+    output_names = [CLASSICAL_INPUT]
+
+    def __init__(self, model: D3LVO):
+        super().__init__()
+        self.model = model
+        self.input_names = classical_input_names(model)
+
+    def forward(self, *tensors):
+        byname = dict(zip(self.input_names, tensors))
+        solver = {k: byname[k] for k in solver_input_names(self.model)}
+        return self.model.point_pose.classical_solve(solver, byname["init_pose"])

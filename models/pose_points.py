@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+from d3lvo_deploy.points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
 
 from . import gauss_newton as gn
 from .config import D3LVOConfig
@@ -148,6 +148,16 @@ class PointPose(nn.Module):
             return [solver[n] for n in grey1], [solver[n] for n in stack2]
         return image_pyramids(solver["image1"], solver["image2"], len(self.settings.iterations))
 
+    def classical_solve(self, solver: dict, init: torch.Tensor) -> torch.Tensor:
+        """(B,4,4) the classical mode's pose (every point of the list at weight 1) from `init`: the
+        solve `forward` batches beside the weighted one, alone. It reads no network output, so the
+        runtime runs it on a core of its own while completion and encoder run (the rows of a batch
+        cost time, docs/performance.md), then passes it to the flow+pose graph as `CLASSICAL_INPUT`."""
+        grey1, stack2 = self.pyramids(solver)
+        mask = solver["point_mask1"]
+        return solve(grey1, stack2, solver["points1"], mask, solver["image_intrinsics"], init, self.settings,
+                     mask=mask, depth2=solver.get(SCAN_DEPTH_INPUT))[-1]
+
     def forward(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                 invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, init: torch.Tensor,
                 solver: dict | None) -> dict:
@@ -165,15 +175,20 @@ class PointPose(nn.Module):
         grey1, stack2 = self.pyramids(solver)
         points, mask, K_image = solver["points1"], solver["point_mask1"], solver["image_intrinsics"]
         if self.cfg.pt_select > 0:
-            # the classical solve too, in one batch with the weighted one (a step's time is per-op
-            # overhead, so two pairs cost about what one does), and its pose unless the weighted
-            # one explains the points the network trusts better by more than pt_select
-            # (`consensus_gain`)
-            # batch rows 2i and 2i + 1 are pair i's two solves, which share its images (no copy)
-            two = lambda x: interleave(x, x)  # noqa: E731
-            both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
-                         self.settings, mask=two(mask), depth2=solver.get(SCAN_DEPTH_INPUT))
-            levels, classical = [L[0::2] for L in both], both[-1][1::2]
+            # the classical solve too, and its pose unless the weighted one explains the points the
+            # network trusts better by more than pt_select (`consensus_gain`). Given as
+            # `CLASSICAL_INPUT` (the runtime solved it beside completion and encoder,
+            # `classical_solve`), else in one batch with the weighted one: batch rows 2i and 2i + 1
+            # are pair i's two solves, which share its images (no copy)
+            if CLASSICAL_INPUT in solver:
+                levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask,
+                               depth2=solver.get(SCAN_DEPTH_INPUT))
+                classical = solver[CLASSICAL_INPUT]
+            else:
+                two = lambda x: interleave(x, x)  # noqa: E731
+                both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
+                             self.settings, mask=two(mask), depth2=solver.get(SCAN_DEPTH_INPUT))
+                levels, classical = [L[0::2] for L in both], both[-1][1::2]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)
             # the next pair starts from the weighted pose, whichever is kept: started from a
             # classical pose that tracked a vehicle, the weighted solve would track it too

@@ -317,6 +317,30 @@ def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
     assert min(idle) < 0.02, f"CPU seconds while idle after a run: {idle}"
 
 
+def test_two_cores_solve_the_classical_mode_beside_completion_and_encoder():
+    """With two threads or more and a folder that has the classical stage, a run opens it (one
+    thread) and the flow+pose graph that takes its pose instead of the batched one, and completion
+    and encoder one thread short; with one thread, the switch off, a three-deep pipeline (whose
+    reader takes the second core for completion and encoder) or a folder without the stage, the
+    batched graph on the run's threads."""
+    from d3lvo_deploy.backends import stage_configs
+
+    stages = dict.fromkeys(["completion", "encoder", "flowpose", "classical", "flowpose_weighted"])
+    threads = lambda configs: {n: c.engine_threads for n, c in configs.items()}  # noqa: E731
+    assert threads(stage_configs(stages, SessionConfig(threads=2))) == {
+        "completion": 1, "encoder": 1, "classical": 1, "flowpose_weighted": 2}
+    assert threads(stage_configs(stages, SessionConfig(threads=4))) == {
+        "completion": 3, "encoder": 3, "classical": 1, "flowpose_weighted": 4}
+    # two deep, the flow+pose graph one thread short, beside the reader
+    assert threads(stage_configs(stages, SessionConfig(threads=2).pipelined(2))) == {
+        "completion": 1, "encoder": 1, "classical": 1, "flowpose_weighted": 1}
+    for sc in (SessionConfig(threads=1), SessionConfig(threads=2, classical_beside=False),
+               SessionConfig(threads=2).pipelined(3)):
+        assert list(stage_configs(stages, sc)) == ["completion", "encoder", "flowpose"]
+    batched = dict.fromkeys(["completion", "encoder", "flowpose"])
+    assert threads(stage_configs(batched, SessionConfig(threads=2))) == {"completion": 2, "encoder": 2, "flowpose": 2}
+
+
 def test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer(small_model, small_synth, tmp_path):
     """Pipelined, the reader thread works beside the flow+pose stage: that stage opens with one
     thread fewer than the cores given, so that the reader has one of its own. Three deep (on

@@ -214,6 +214,22 @@ def test_engines_take_turns_in_blocks_each_on_its_own_consecutive_frames(small_m
         assert [s for o, s in order[:10] if o == engine] == [sums[k % n] for k in range(5)]
 
 
+def test_a_stage_beside_the_others_is_timed_but_not_added_to_the_frame():
+    """The classical solve runs on another thread while completion and encoder do: its row is its
+    own time, the frame's total the stages the frame waited for (the flow+pose stage's time holds
+    any wait for the solve), and the table's GFLOP those of the graphs the frame ran."""
+    from cli.bench_cmd import _row_gflops
+    from d3lvo_deploy.bench import BESIDE_ROW, StageTimes
+
+    t = StageTimes()
+    t.add({"project": 1.0, "completion": 2.0, "encoder": 3.0, BESIDE_ROW: 4.5, "flowpose": 7.0})
+    assert t.samples["total"] == [13.0] and t.samples[BESIDE_ROW] == [4.5]
+    gf = {"completion": 1.0, "encoder": 2.0, "flowpose": 4.0, "classical": 0.5, "flowpose_weighted": 3.0}
+    assert _row_gflops(gf, beside=True) == {"completion": 1.0, "encoder": 2.0, "flowpose": 3.0, BESIDE_ROW: 0.5,
+                                             "total": 6.5}
+    assert _row_gflops(gf, beside=False) == {"completion": 1.0, "encoder": 2.0, "flowpose": 4.0, "total": 7.0}
+
+
 def test_pipelined_fps_steps_every_frame_in_order_once():
     """The pipelined timing prepares frame k+1 while frame k steps: every frame, in order, each
     prepared once (one more is prepared ahead and dropped)."""

@@ -840,6 +840,47 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
             kept, start = sess.run(["matrix", "start_next"], feeds)
             np.testing.assert_allclose(kept, want[rows], atol=1e-5)
             np.testing.assert_allclose(start, weighted[rows], atol=1e-5)
+            # the classical mode solved apart (`classical`), its pose then given to the flow+pose
+            # graph that takes it (`flowpose_weighted`): every output as the batched graph's, to the bit
+            split = graph.replace("flowpose", "{}")
+            alone = ort.InferenceSession(str(tmp_path / "gate" / split.format("classical")),
+                                         providers=["CPUExecutionProvider"])
+            given = ort.InferenceSession(str(tmp_path / "gate" / split.format("flowpose_weighted")),
+                                         providers=["CPUExecutionProvider"])
+            pose = alone.run(None, {i.name: feeds[i.name] for i in alone.get_inputs()})[0]
+            np.testing.assert_allclose(pose, classical[rows], atol=1e-5)
+            both = given.run(None, {**feeds, "classical_pose": pose})
+            for name, a, b in zip([o.name for o in sess.get_outputs()], sess.run(None, feeds), both):
+                np.testing.assert_array_equal(a, b, err_msg=f"{split.format('flowpose_weighted')}: {name}")
+
+
+def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(points_model, small_synth, tmp_path):
+    """A model that keeps its classical pose unless the weighted one fits better (`pt_select`) is
+    exported with that solve as a stage of its own. On two threads the runtime opens it and the
+    flow+pose graph that takes its pose, not the batched graph, solves it on its helper thread
+    while completion and encoder run (its time in `last_timing.beside`, outside the frame's total),
+    and writes the poses the batched graph gives (the switch off), to the bit on onnxruntime; on
+    one thread it runs the batched graph."""
+    from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.odometry import Odometry
+    from export.onnx_export import ExportConfig, export_checkpoint
+
+    m = export_checkpoint(points_model[0], ExportConfig(out=tmp_path / "m", solver={"pt_select": 0.01}))
+    assert {"classical", "flowpose_weighted"} <= set(m["stages"])
+    seq = KittiSequence.open(small_synth)
+    poses = {}
+    for name, sc in {"beside": SessionConfig(threads=2), "batched": SessionConfig(threads=2, classical_beside=False),
+                     "one thread": SessionConfig(threads=1)}.items():
+        odo = Odometry(tmp_path / "m", seq.calib, sc)
+        poses[name] = np.array([odo.step(seq.image(i), seq.scan(i)) for i in range(4)])
+        if name == "beside":
+            assert set(odo.model.sessions) == {"completion", "encoder", "classical", "flowpose_weighted"}
+            assert odo.last_timing.beside["classical"] > 0 and "classical" not in odo.last_timing.ms
+        else:
+            assert set(odo.model.sessions) == {"completion", "encoder", "flowpose"} and not odo.last_timing.beside
+    assert np.linalg.norm(poses["batched"][-1][:3, 3]) > 0.1  # it moved
+    np.testing.assert_array_equal(poses["beside"], poses["batched"])
+    np.testing.assert_allclose(poses["one thread"], poses["batched"], atol=1e-5)
 
 
 def test_direct_method_is_the_models_classical_mode(points_model):
