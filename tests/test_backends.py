@@ -250,15 +250,22 @@ def test_onnxruntime_keeps_its_optimised_graphs(small_model, small_synth, tmp_pa
 def test_every_stage_runs_on_the_threads_asked_for():
     """--threads is every stage's thread count on both engines, the point solver's flow+pose too
     (two threads measured faster than one for that stage on OpenVINO on an AMD EPYC,
-    docs/performance.md)."""
+    docs/performance.md). With the classical solve beside (the bundled model on two threads), that
+    solve runs on one thread (unpinned on OpenVINO, so that it takes the core the others leave) and
+    completion and encoder on one fewer."""
     from d3lvo_deploy.bundled import bundled_model_dir
 
-    ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2))
-    ov_m = StageModel(bundled_model_dir(), SessionConfig(backend="openvino", threads=2))
-    assert ov_m.point_solver and set(ov_m.sessions) == {"completion", "encoder", "flowpose"}
-    for name in ov_m.sessions:
-        assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == 2, name
-        assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == 2, name
+    want = {True: {"completion": 1, "encoder": 1, "classical": 1, "flowpose_weighted": 2},
+            False: {"completion": 2, "encoder": 2, "flowpose": 2}}
+    for beside, threads in want.items():
+        ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2, classical_beside=beside))
+        ov_m = StageModel(bundled_model_dir(), SessionConfig(backend="openvino", threads=2, classical_beside=beside))
+        assert ov_m.point_solver and set(ov_m.sessions) == set(ort_m.sessions) == set(threads)
+        for name, n in threads.items():
+            assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == n, name
+            assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == n, name
+        if beside:
+            assert ov_m.sessions["classical"].compiled.get_property("ENABLE_CPU_PINNING") is False
 
 
 def test_threads_0_reads_omp_num_threads(small_model, monkeypatch):
