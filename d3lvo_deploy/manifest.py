@@ -16,7 +16,7 @@ MANIFEST_FORMAT = "d3lvo-onnx"
 # 2: stages take normalised RGB and inverse depth (1 took RGB in [0, 1] and metres)
 MANIFEST_VERSION = 2
 STANDARD_DOMAINS = ("", "ai.onnx")
-STAGES = ("completion", "encoder", "flowpose")
+STAGES = ("completion", "encoder", "flowpose")  # and, for the point solver, "classical" and "flowpose_weighted"
 # a stage may also carry a graph of the same inputs and outputs for one engine, under that engine's
 # name: the flow+pose stage's `onnxruntime` graph takes its bilinear samples as Gathers (models/sampling.py)
 ENGINE_GRAPHS = ("onnxruntime",)
@@ -56,7 +56,7 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
                                              f"d3lvo export --ckpt {model_dir} --out DIR, then pass DIR")
         if model_dir.suffix == ".onnx":
             raise D3LVOInputError(model_dir, "is one ONNX file; pass the folder written by `d3lvo export` "
-                                             "(its manifest.json lists the three stages)")
+                                             "(its manifest.json lists the stages)")
         raise D3LVOInputError(model_dir, "is a file; pass the folder written by `d3lvo export`")
     if not path.is_file():
         raise D3LVOInputError(model_dir, "no manifest.json: not a folder written by `d3lvo export`")

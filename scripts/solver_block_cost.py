@@ -14,7 +14,9 @@ inputs, taking turns:
 - with the 6x6 solve replaced by a stand-in of one op (g divided by H's diagonal): not a
   solver, only what the block costs without one;
 - with the Huber threshold's median (a TopK partial sort of every point's residual) replaced by
-  the masked mean: what the median costs.
+  the masked mean: what the median costs;
+- on the weighted solves' rows alone (the coarse-to-fine solve and the restart; the classical
+  mode's two rows left to the `classical` stage), and on one row: what a batch's rows cost.
 
 Figures: docs/performance.md.
 """
@@ -59,6 +61,17 @@ def finest_block_inputs(seq: Path) -> list:
     finally:
         ps.gn_steps = steps
     return kept["args"]
+
+
+# gn_steps' arguments with a row per solve: the pose, the stop flag, the points, frame t-1's grey,
+# the grid intrinsics, the focal lengths, the three weights and the sampling offsets
+PER_ROW = (0, 1, 2, 3, 5, 6, 7, 8, 9, 13)
+
+
+def rows_of(args: list, rows: list[int]) -> list:
+    """The block's arguments for some of its solves. Rows per pair: the weighted and the classical
+    coarse-to-fine solve, then their restarts (`point_solver._finest_with_restart`)."""
+    return [a[rows].contiguous() if j in PER_ROW else a for j, a in enumerate(args)]
 
 
 def masked_mean(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -118,6 +131,9 @@ def main(argv: list[str] | None = None) -> None:
                                                        Path(tmp) / "c.onnx"),
             "median replaced by a mean": compiled_block(args, settings, ps.scaled_solve, Path(tmp) / "d.onnx",
                                                         median=masked_mean),
+            "the weighted rows alone": compiled_block(rows_of(args, [0, 2]), settings, ps.scaled_solve,
+                                                      Path(tmp) / "e.onnx"),
+            "one row": compiled_block(rows_of(args, [0]), settings, ps.scaled_solve, Path(tmp) / "f.onnx"),
         }
         times: dict[str, list[float]] = {k: [] for k in variants}
         for _ in range(a.rounds):
