@@ -277,7 +277,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         # a thread count the user did not type on this command line is named, with where it came from
         n = sc.engine_threads
         from_env = f"; {n} thread{'s' * (n != 1)} from OMP_NUM_THREADS" if not sc.threads and n else ""
-        console.print(f"model {model_dir} on {engine_name} ({why}{from_env})", highlight=False)
+        beside = "; its classical solve on a second thread beside completion and encoder" if plan.odo.model.beside else ""
+        console.print(f"model {model_dir} on {engine_name} ({why}{from_env}{beside})", highlight=False)
     console.print(f"{seq.format_name} recording {seq.root}: {len(seq)} frames; "
                   f"poses in {seq.frame_label}", highlight=False)
     if plan.done.shape[0]:
@@ -329,9 +330,10 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, 
         "recording": {"frames": len(seq), "pose_frame": seq.frame_label},
     }
     if plan is not None and plan.sc is not None:  # the threads each stage ran on (0: the engine's choice)
-        tables["machine"].update(pipeline_depth=plan.depth, encoder_threads=plan.sc.engine_threads,
-                                 flowpose_threads=plan.sc.for_stage("flowpose").engine_threads,
-                                 prepare_threads=plan.sc.preparing_threads)
+        model = plan.odo.model
+        tables["machine"].update(pipeline_depth=plan.depth, encoder_threads=model.threads("encoder"),
+                                 flowpose_threads=model.threads("flowpose"), prepare_threads=plan.sc.preparing_threads,
+                                 classical_beside=model.beside)
     folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
                       + to_toml(tables))
 

@@ -118,6 +118,10 @@ class StageModel:
         if [norm(s) for _, s in got_in] != [norm(s) for _, s in want_in]:
             raise D3LVOInputError(path, "input shapes differ from manifest.json")
 
+    def threads(self, stage: str) -> int:
+        """The engine threads `stage`'s session runs on (0: the engine's choice)."""
+        return self._settings[self._graph(stage)].engine_threads
+
     def output_names(self, stage: str) -> list[str]:
         return self.sessions[self._graph(stage)].outputs
 
