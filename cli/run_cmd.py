@@ -27,10 +27,13 @@ def resolve_model_dir(onnx: Path | None) -> Path:
 
 
 def latency_table(stats: dict) -> Table:
+    """Per stage; the classical solve beside completion and encoder (`BESIDE_ROW`) is not in the total."""
+    from d3lvo_deploy.bench import BESIDE_ROW
+
     t = Table(title="latency per frame (ms)")
     for c in ("stage", "mean", "p90", "max"):
         t.add_column(c, justify="right")
-    for k in ("read", "project", "completion", "encoder", "flowpose", "total"):
+    for k in ("read", "project", "completion", "encoder", BESIDE_ROW, "flowpose", "total"):
         if k in stats:
             s = stats[k]
             t.add_row(k, f"{s['mean']:.1f}", f"{s['p90']:.1f}", f"{s['max']:.1f}")

@@ -10,14 +10,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .odometry import Odometry
+from .odometry import BESIDE_ROW, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .pipeline import engine_depth
 from .sequence import KittiSequence
 
-# a stage that runs on another thread beside the others (`FrameTiming.beside`): timed, but not part
-# of the frame's total, which is its wall time
-BESIDE_ROW = "classical (beside)"
+# BESIDE_ROW, a stage that runs on another thread beside the others (`FrameTiming.beside`): timed,
+# but not part of the frame's total, which is its wall time
 BENCH_STAGES = ("project", "completion", "encoder", BESIDE_ROW, "flowpose", "total")
 TURN_FRAMES = 5  # frames a stream runs before the next one's turn (`take_turns`)
 ENGINE_WARMUP = 3  # untimed frames per engine first (`warm_up`): first-call allocations, caches

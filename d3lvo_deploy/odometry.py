@@ -28,6 +28,8 @@ from .points import (CLASSICAL_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_leve
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 STAGES = ("project", "completion", "encoder", "flowpose")
+# a frame's stage that runs on another thread beside those (`FrameTiming.beside`), as the tables name it
+BESIDE_ROW = "classical (beside)"
 
 
 class ScanWarning(UserWarning):
