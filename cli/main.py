@@ -35,7 +35,7 @@ def root(version: bool = typer.Option(False, "--version", callback=_version, is_
     """D3LVO LiDAR-visual odometry: train in PyTorch, export to ONNX, run on a CPU without torch.
 
     The commands in the order of the work: demo (everything once, on the bundled model), synth
-    (KITTI-format synthetic drives), train, export (three ONNX stages), parity (ONNX against
+    (KITTI-format synthetic drives), train, export (the ONNX stages), parity (ONNX against
     torch), run (odometry on a KITTI sequence or raw drive, a ROS bag or a folder of scans), eval
     (KITTI devkit scores), bench (speed on this CPU).
     Example: d3lvo run drive.mcap   (poses, metrics and latency in results/latest/)

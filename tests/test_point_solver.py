@@ -881,6 +881,14 @@ def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(p
     assert np.linalg.norm(poses["batched"][-1][:3, 3]) > 0.1  # it moved
     np.testing.assert_array_equal(poses["beside"], poses["batched"])
     np.testing.assert_allclose(poses["one thread"], poses["batched"], atol=1e-5)
+    # a run's latencies: the solve beside in its own row, the frame's total the stages it waited for
+    from d3lvo_deploy.odometry import BESIDE_ROW, STAGES
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+
+    lat = run_sequence(seq, tmp_path / "m", RunConfig(out=tmp_path / "p.txt", end=4), SessionConfig(threads=2)).latencies_ms
+    assert len(lat[BESIDE_ROW]) == 3  # the pairs
+    frames = np.array([lat[k] for k in (*STAGES, "read")]).sum(0)
+    np.testing.assert_allclose(lat["total"], frames)
 
 
 def test_direct_method_is_the_models_classical_mode(points_model):
