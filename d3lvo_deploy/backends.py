@@ -31,6 +31,11 @@ REDUCED_PRECISION_STAGES = ("completion", "encoder")
 # the stage a run solves beside the others, on a thread of its own (`SessionConfig.solves_beside`)
 BESIDE_STAGE = "classical"
 WEIGHTED_STAGE = "flowpose_weighted"  # the flow+pose graph that takes that stage's pose
+# the stages one thread short while the classical solve runs beside them, per engine (measured,
+# docs/performance.md): onnxruntime's pool threads spin while they wait, so a stage of its on every
+# core beside the solve lost more than it gained; OpenVINO's encoder, on every core, gave the
+# solve's tail the time back
+SHORT_BESIDE = {"onnxruntime": ("completion", "encoder"), "openvino": ("completion",)}
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
 # onnxruntime's GraphOptimizationLevel members, by the names --optimization takes
@@ -248,9 +253,9 @@ def stage_configs(stages, sc: SessionConfig) -> dict[str, SessionConfig]:
     """The stages of a model folder (names, in the manifest's order) that a run with `sc` opens,
     each with the settings its session opens with (`SessionConfig.for_stage`). Where the run
     solves the classical mode beside (`SessionConfig.solves_beside`) and the folder has that
-    stage: `classical` (one thread) and `flowpose_weighted` in place of `flowpose`, and completion
-    and encoder one thread short, which leaves the classical solve a core of its own while they
-    run (sharing it, they took longer than the solve saved, docs/performance.md); else `flowpose`."""
+    stage: `classical` (one thread) and `flowpose_weighted` in place of `flowpose`, and the stages
+    the solve runs beside one thread short, which leaves it a core of its own (`SHORT_BESIDE`);
+    else `flowpose`."""
     names = list(stages)
     beside = sc.solves_beside and BESIDE_STAGE in names and WEIGHTED_STAGE in names
     unused = {"flowpose"} if beside else {BESIDE_STAGE, WEIGHTED_STAGE}
@@ -259,7 +264,7 @@ def stage_configs(stages, sc: SessionConfig) -> dict[str, SessionConfig]:
         if n in unused:
             continue
         out[n] = sc.for_stage(n)
-        if beside and n in ("completion", "encoder"):
+        if beside and n in SHORT_BESIDE.get(sc.backend, ()):
             out[n] = replace(out[n], threads=max(1, sc.threads_taken - 1))
     return out
 

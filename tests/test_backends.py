@@ -252,18 +252,18 @@ def test_every_stage_runs_on_the_threads_asked_for():
     (two threads measured faster than one for that stage on OpenVINO on an AMD EPYC,
     docs/performance.md). With the classical solve beside (the bundled model on two threads), that
     solve runs on one thread (unpinned on OpenVINO, so that it takes the core the others leave) and
-    completion and encoder on one fewer."""
+    completion (and on onnxruntime encoder) on one fewer."""
     from d3lvo_deploy.bundled import bundled_model_dir
 
-    want = {True: {"completion": 1, "encoder": 1, "classical": 1, "flowpose_weighted": 2},
-            False: {"completion": 2, "encoder": 2, "flowpose": 2}}
+    want = {True: {"completion": (1, 1), "encoder": (1, 2), "classical": (1, 1), "flowpose_weighted": (2, 2)},
+            False: {"completion": (2, 2), "encoder": (2, 2), "flowpose": (2, 2)}}  # (onnxruntime, OpenVINO)
     for beside, threads in want.items():
         ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2, classical_beside=beside))
         ov_m = StageModel(bundled_model_dir(), SessionConfig(backend="openvino", threads=2, classical_beside=beside))
         assert ov_m.point_solver and set(ov_m.sessions) == set(ort_m.sessions) == set(threads)
-        for name, n in threads.items():
-            assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == n, name
-            assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == n, name
+        for name, (n_ort, n_ov) in threads.items():
+            assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == n_ov, name
+            assert ort_m.sessions[name].sess.get_session_options().intra_op_num_threads == n_ort, name
         if beside:
             assert ov_m.sessions["classical"].compiled.get_property("ENABLE_CPU_PINNING") is False
 
@@ -326,8 +326,8 @@ def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
 
 def test_two_cores_solve_the_classical_mode_beside_completion_and_encoder():
     """With two threads or more and a folder that has the classical stage, a run opens it (one
-    thread) and the flow+pose graph that takes its pose instead of the batched one, and completion
-    and encoder one thread short; with one thread, the switch off, a three-deep pipeline (whose
+    thread) and the flow+pose graph that takes its pose instead of the batched one, and the stages
+    it runs beside one thread short (onnxruntime: completion and encoder; OpenVINO: completion); with one thread, the switch off, a three-deep pipeline (whose
     reader takes the second core for completion and encoder) or a folder without the stage, the
     batched graph on the run's threads."""
     from d3lvo_deploy.backends import stage_configs
@@ -336,6 +336,9 @@ def test_two_cores_solve_the_classical_mode_beside_completion_and_encoder():
     threads = lambda configs: {n: c.engine_threads for n, c in configs.items()}  # noqa: E731
     assert threads(stage_configs(stages, SessionConfig(threads=2))) == {
         "completion": 1, "encoder": 1, "classical": 1, "flowpose_weighted": 2}
+    # OpenVINO: completion alone one thread short
+    assert threads(stage_configs(stages, SessionConfig(threads=2, backend="openvino"))) == {
+        "completion": 1, "encoder": 2, "classical": 1, "flowpose_weighted": 2}
     assert threads(stage_configs(stages, SessionConfig(threads=4))) == {
         "completion": 3, "encoder": 3, "classical": 1, "flowpose_weighted": 4}
     # two deep, the flow+pose graph one thread short, beside the reader
