@@ -327,9 +327,9 @@ def test_onnxruntime_threads_do_not_spin_between_runs(small_model):
 def test_two_cores_solve_the_classical_mode_beside_completion_and_encoder():
     """With two threads or more and a folder that has the classical stage, a run opens it (one
     thread) and the flow+pose graph that takes its pose instead of the batched one, and the stages
-    it runs beside one thread short (onnxruntime: completion and encoder; OpenVINO: completion); with one thread, the switch off, a three-deep pipeline (whose
-    reader takes the second core for completion and encoder) or a folder without the stage, the
-    batched graph on the run's threads."""
+    it runs beside one thread short (onnxruntime: completion and encoder; OpenVINO: completion);
+    with one thread, the switch off, a three-deep pipeline (whose reader takes the second core for
+    completion and encoder) or a folder without the stage, the batched graph on the run's threads."""
     from d3lvo_deploy.backends import stage_configs
 
     stages = dict.fromkeys(["completion", "encoder", "flowpose", "classical", "flowpose_weighted"])
