@@ -32,9 +32,8 @@ REDUCED_PRECISION_STAGES = ("completion", "encoder")
 BESIDE_STAGE = "classical"
 WEIGHTED_STAGE = "flowpose_weighted"  # the flow+pose graph that takes that stage's pose
 # the stages one thread short while the classical solve runs beside them, per engine (measured,
-# docs/performance.md): onnxruntime's pool threads spin while they wait, so a stage of its on every
-# core beside the solve lost more than it gained; OpenVINO's encoder, on every core, gave the
-# solve's tail the time back
+# docs/performance.md): onnxruntime's pool threads spin while they wait, so its encoder on every
+# core beside the solve lost more than the split gained; OpenVINO's encoder on every core was faster
 SHORT_BESIDE = {"onnxruntime": ("completion", "encoder"), "openvino": ("completion",)}
 
 PROVIDERS = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider", "tensorrt": "TensorrtExecutionProvider"}
@@ -144,6 +143,7 @@ class SessionConfig:
         threads = self.flowpose_threads if stage.startswith("flowpose") and self.flowpose_threads else self.threads
         if stage == BESIDE_STAGE:
             threads = 1
+        # the run-wide switches reset: a stage's session depends on its own settings only
         return replace(self, threads=threads, flowpose_threads=0, prepare_threads=0, classical_beside=True)
 
     def pipelined(self, depth: int = 2) -> "SessionConfig":
