@@ -334,9 +334,9 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, 
     }
     if plan is not None and plan.sc is not None:  # the threads each stage ran on (0: the engine's choice)
         model = plan.odo.model
-        tables["machine"].update(pipeline_depth=plan.depth, encoder_threads=model.threads("encoder"),
-                                 flowpose_threads=model.threads("flowpose"), prepare_threads=plan.sc.preparing_threads,
-                                 classical_beside=model.beside)
+        stages = [s for s in ("completion", "encoder", "classical") if s in model.sessions] + ["flowpose"]
+        tables["machine"].update(pipeline_depth=plan.depth, **{f"{s}_threads": model.threads(s) for s in stages},
+                                 prepare_threads=plan.sc.preparing_threads, classical_beside=model.beside)
     folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
                       + to_toml(tables))
 

@@ -130,11 +130,12 @@ class SessionConfig:
     @property
     def solves_beside(self) -> bool:
         """The classical mode's solve runs on a thread of its own while completion and encoder run
-        (`Odometry`, where the model folder has the `classical` stage): with two cores or more. The
+        (`Odometry`, where the model folder has the `classical` stage): with two cores or more, on
+        the CPU provider (what was measured). The
         solve's steps are thousands of small ops on one thread whichever the stage's thread count,
         so they take the second core that the network's other stages use least
         (docs/performance.md)."""
-        return self.classical_beside and self.threads_taken >= 2
+        return self.classical_beside and self.threads_taken >= 2 and self.provider == "cpu"
 
     def for_stage(self, stage: str) -> "SessionConfig":
         """The settings one stage's session opens with (and nothing else: two runs whose stage

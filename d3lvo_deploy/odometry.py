@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -241,22 +241,25 @@ class Odometry:
         self.last_timing = FrameTiming(dict(times))
         return self._pose_step(enc)
 
-    def _start_classical(self, solver: SolverFrame | None) -> "_Beside | None":
-        """The pair's inputs and, started on the helper thread, its classical solve (the `classical`
-        stage), where the model solves it beside; None where not, or for the first frame."""
+    def _start_classical(self, solver: SolverFrame | None) -> Future | None:
+        """Where the model solves the classical mode beside: the pair's inputs (the first pair's
+        start from the cold start's solves too) and its classical solve (the `classical` stage),
+        started on the helper thread, as a future of (inputs with `CLASSICAL_INPUT`, ms); None
+        where not, or for the first frame."""
         if not self.model.beside or self._prev is None or solver is None:
             return None
-        inputs = self._pair_inputs(solver)
 
-        def solve() -> tuple[np.ndarray, float]:
+        def solve() -> tuple[dict[str, np.ndarray], float]:
             t0 = time.perf_counter()
-            return self.model.solve_classical(inputs), (time.perf_counter() - t0) * 1000
+            inputs = self._pair_inputs(solver)
+            inputs[CLASSICAL_INPUT] = self.model.solve_classical(inputs)
+            return inputs, (time.perf_counter() - t0) * 1000
 
-        return _Beside(inputs, self._helper.submit(solve))
+        return self._helper.submit(solve)
 
-    def _pose_step(self, enc: dict[str, np.ndarray], beside: "_Beside | None" = None) -> np.ndarray:
+    def _pose_step(self, enc: dict[str, np.ndarray], beside: Future | None = None) -> np.ndarray:
         """The flow+pose half of a step: the pair (previous frame, `enc`), then `enc` is the previous.
-        `beside`: the pair's inputs and its classical solve, started by `_start_classical`."""
+        `beside`: the pair's inputs and classical solve, started by `_start_classical`."""
         t0 = time.perf_counter()
         if self._prev is not None:
             out = self._flow_pose(enc, beside)
@@ -279,7 +282,7 @@ class Odometry:
         self.frames += 1
         return self.pose.copy()
 
-    def _flow_pose(self, enc: dict, beside: "_Beside | None" = None) -> dict[str, np.ndarray]:
+    def _flow_pose(self, enc: dict, beside: Future | None = None) -> dict[str, np.ndarray]:
         """The flow+pose stage on (previous frame, `enc`); with the classical mode solved beside,
         that solve's pose as an input (solved here where no `beside` started it)."""
         if not self.model.geometric:
@@ -287,9 +290,7 @@ class Odometry:
         if beside is None:  # with the classical mode solved beside, `flow_pose` solves it first
             inputs = self._pair_inputs(enc.get("solver_frame"))
         else:
-            pose, ms = beside.solve.result()
-            inputs = {**beside.inputs, CLASSICAL_INPUT: pose}
-            self.last_timing.beside[BESIDE_STAGE] = ms
+            inputs, self.last_timing.beside[BESIDE_STAGE] = beside.result()
         return self.model.flow_pose(self._prev, enc, inputs)
 
     def _pair_inputs(self, solver: SolverFrame | None) -> dict[str, np.ndarray]:
@@ -322,14 +323,6 @@ class Odometry:
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:
         """The image_2 motion between two cam0 poses: the Gauss-Newton head's next start."""
         return change_frame(relative(before, after), self.calib.T_cam2_cam0)
-
-
-@dataclass
-class _Beside:
-    """A pair's flow+pose inputs and its classical solve running on the helper thread (a future
-    of (pose, ms))."""
-    inputs: dict[str, np.ndarray]
-    solve: Any
 
 
 def cold_start_motion(prev: SolverFrame, cur: SolverFrame, K: np.ndarray, model_config: dict,

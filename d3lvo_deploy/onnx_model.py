@@ -135,8 +135,8 @@ class StageModel:
     def solve_classical(self, solver_inputs: dict[str, np.ndarray]) -> np.ndarray:
         """The classical mode's pose of the pair ((1,4,4), `CLASSICAL_INPUT`) from the flow+pose
         graph's solver inputs and `init_pose` (`Odometry`, on its helper thread)."""
-        names = self.input_names(BESIDE_STAGE)
-        return self.run(BESIDE_STAGE, {n: solver_inputs[n] for n in names})[CLASSICAL_INPUT]
+        feeds = flowpose_feeds(self.input_names(BESIDE_STAGE), {}, {}, solver_inputs)
+        return self.run(BESIDE_STAGE, feeds)[CLASSICAL_INPUT]
 
     def complete(self, rgb_norm: np.ndarray, sparse_inv: np.ndarray) -> np.ndarray:
         """Normalised RGB + sparse inverse depth -> dense inverse depth (see export.stages)."""

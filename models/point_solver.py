@@ -322,7 +322,7 @@ def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask,
     `s.restart_depth` and frame t's LiDAR depth `scan_depth2`, where it fits that depth better
     (`lidar_depth_error`), else the coarse-to-fine one. One batch rather than a second solve: a
     step's time is mostly per-op overhead, so twice the rows cost less than two solves (OpenVINO, a
-    finest-level block: one row 0.56 ms, two 0.90, four 1.22, `scripts/solver_block_cost.py`). Rows
+    finest-level block: one row 0.56 ms, two 0.91, four 1.23, `scripts/solver_block_cost.py`). Rows
     per pair: its k coarse-to-fine solves, then their k restarts, on one copy of its images."""
     def two(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return torch.cat([a.reshape(-1, k, *a.shape[1:]), b.reshape(-1, k, *b.shape[1:])], 1).flatten(0, 1)

@@ -867,15 +867,30 @@ def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(p
 
     m = export_checkpoint(points_model[0], ExportConfig(out=tmp_path / "m", solver={"pt_select": 0.01}))
     assert {"classical", "flowpose_weighted"} <= set(m["stages"])
+    import threading
+
     seq = KittiSequence.open(small_synth)
     poses = {}
     for name, sc in {"beside": SessionConfig(threads=2), "batched": SessionConfig(threads=2, classical_beside=False),
                      "one thread": SessionConfig(threads=1)}.items():
         odo = Odometry(tmp_path / "m", seq.calib, sc)
+        started, overlapped = threading.Event(), []
+        if name == "beside":  # completion waits (up to 10 s) for the pair's classical solve to start
+            solve, complete = odo.model.solve_classical, odo.model.complete
+            odo.model.solve_classical = lambda inputs: (started.set(), solve(inputs))[1]
+
+            def completing(*a):
+                if odo._prev is not None:
+                    overlapped.append(started.wait(10.0))
+                    started.clear()
+                return complete(*a)
+
+            odo.model.complete = completing
         poses[name] = np.array([odo.step(seq.image(i), seq.scan(i)) for i in range(4)])
         if name == "beside":
             assert set(odo.model.sessions) == {"completion", "encoder", "classical", "flowpose_weighted"}
             assert odo.last_timing.beside["classical"] > 0 and "classical" not in odo.last_timing.ms
+            assert overlapped == [True] * 3  # each pair's solve ran while its completion did
         else:
             assert set(odo.model.sessions) == {"completion", "encoder", "flowpose"} and not odo.last_timing.beside
     assert np.linalg.norm(poses["batched"][-1][:3, 3]) > 0.1  # it moved
