@@ -243,8 +243,8 @@ MUTATIONS = [
              "        beside = None\n",
              ("tests/test_point_solver.py::test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses",)),
     Mutation("the flow+pose graph is given the pair's start as its classical pose", "d3lvo_deploy/odometry.py",
-             "            inputs = {**beside.inputs, CLASSICAL_INPUT: pose}\n",
-             "            inputs = {**beside.inputs, CLASSICAL_INPUT: beside.inputs[\"init_pose\"]}\n",
+             "            inputs[CLASSICAL_INPUT] = self.model.solve_classical(inputs)\n",
+             "            inputs[CLASSICAL_INPUT] = inputs[\"init_pose\"]\n",
              ("tests/test_point_solver.py::test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses",)),
 ]
 
