@@ -108,6 +108,9 @@ def bench_command(
     height: int | None = typer.Option(None, "--height", help="Export --ckpt at this height; without --ckpt, time the default network (D3LVOConfig()) at this size."),
     width: int | None = typer.Option(None, "--width", help="... and this width (e.g. --height 352 --width 1216)."),
     threads: int = typer.Option(2, "--threads", help="Threads for every engine and torch."),
+    classical_beside: bool = typer.Option(True, "--classical-beside/--no-classical-beside", help="With a model that "
+                                          "has the classical stage (the bundled one): solve the classical mode beside "
+                                          "completion and encoder (two cores or more), or in the flow+pose graph."),
     prepare_threads: int = typer.Option(0, "--prepare-threads", help="Threads of each frame's CPU half (the project "
                                         "row): 1 or 2 (default: as `d3lvo run` decides, 2 from two cores up)."),
     runs: int = typer.Option(20, "--runs", help="Timed frames after warm-up."),
@@ -227,7 +230,7 @@ def bench_command(
         top_ops = None
         scs = [SessionConfig(threads=threads, backend=b, ov_precision=ov_precision if b == "openvino" else "f32",
                              profile_dir=str(profile) if profile and b == "onnxruntime" else None,
-                             prepare_threads=prepare_threads) for b in engines]
+                             prepare_threads=prepare_threads, classical_beside=classical_beside) for b in engines]
         frames = bench_frames(seq)
         with console.status(f"loading {', '.join(engines)}"):
             streams = {b: EngineStream(onnx, seq, sc, frames) for b, sc in zip(engines, scs)}

@@ -44,7 +44,7 @@ def latency_table(stats: dict) -> Table:
 # poses (where they are written, resume and pictures do not)
 RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "gt", "onnx", "method",
             "start", "end", "provider", "threads", "backend", "ov_precision", "optimization", "realtime", "viz_every",
-            "pipeline")
+            "pipeline", "classical_beside")
 
 
 def throughput_line(summary) -> str:
@@ -125,6 +125,10 @@ def run_command(
     method: str = typer.Option("d3lvo", "--method", help="d3lvo (the ONNX network) | direct (the no-learning "
                                "photometric LiDAR-visual tracker the network is measured against: the model's "
                                "own solver and point settings, every point weighted 1)."),
+    classical_beside: bool = typer.Option(True, "--classical-beside/--no-classical-beside", help="With a model that "
+                                          "has the classical stage (the bundled one) and two cores or more: solve the "
+                                          "classical mode on a thread of its own while completion and encoder run, or "
+                                          "in the flow+pose graph's batch (the same poses)."),
 ) -> None:
     """Estimate the trajectory of a recording with the ONNX stages (no torch needed).
 
@@ -187,7 +191,7 @@ def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_t
 def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
          out_path, pose_fmt, config, sequences, engine, workers, address, chunk, overlap, onnx, start, end, resume,
          overwrite, viz, viz_every, rerun, gt, plot, provider, threads, backend, ov_precision, optimization, realtime,
-         pipeline, method) -> None:
+         pipeline, method, classical_beside) -> None:
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
     from d3lvo_deploy.results import ResultsFolder, default_folder
@@ -208,7 +212,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
                           max_dt)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
-                       ov_precision=ov_precision)
+                       ov_precision=ov_precision, classical_beside=classical_beside)
     sc.check()
     odometry, why, loading = None, "", "loading the model"
     if method == "direct":
@@ -264,7 +268,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                       onnx=absolute(onnx), method=method,
                       start=start, end=end, provider=provider, threads=sc.engine_threads,  # the count used
                       backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
-                      optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline)
+                      optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline,
+                      classical_beside=classical_beside)
         _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
                       seq, plan)
         if fresh:

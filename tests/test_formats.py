@@ -245,6 +245,32 @@ def test_results_folder_holds_the_run_and_its_config_repeats_it(tmp_path, monkey
     assert r.exit_code == 1 and "unknown option 'speed'" in r.output and str(bad) in r.output
 
 
+def test_run_records_the_classical_solve_beside_and_repeats_the_switch(tmp_path, monkeypatch):
+    """On two threads the bundled model's classical solve runs beside completion and encoder: the
+    model line says so and config.toml records it with each stage's threads; --no-classical-beside
+    runs the one-graph solve, is recorded in [run] and repeated by --config, with the same poses."""
+    monkeypatch.chdir(tmp_path)
+    runs = {}
+    for flag in ("--classical-beside", "--no-classical-beside"):
+        r = runner.invoke(app, ["run", str(TINY), "--backend", "onnxruntime", "--threads", "2", flag])
+        assert r.exit_code == 0, r.output
+        folder = Path("results/latest").resolve()
+        cfg = tomllib.loads((folder / "config.toml").read_text())
+        runs[flag] = folder, cfg
+        beside = flag == "--classical-beside"
+        assert cfg["run"]["classical_beside"] is beside and cfg["machine"]["classical_beside"] is beside
+        assert ("classical solve on a second thread" in r.output) is beside
+    machine = runs["--classical-beside"][1]["machine"]
+    assert machine["classical_threads"] == 1 and machine["encoder_threads"] == 1 and machine["flowpose_threads"] == 2
+    assert "classical_threads" not in runs["--no-classical-beside"][1]["machine"]
+    r = runner.invoke(app, ["run", "--config", str(runs["--no-classical-beside"][0] / "config.toml")])
+    assert r.exit_code == 0 and "classical solve on a second thread" not in r.output, r.output
+    repeat = Path("results/latest").resolve()
+    assert tomllib.loads((repeat / "config.toml").read_text())["machine"]["classical_beside"] is False
+    poses = [(f / "poses.txt").read_bytes() for f in (runs["--classical-beside"][0], runs["--no-classical-beside"][0], repeat)]
+    assert poses[0] == poses[1] == poses[2]
+
+
 def test_resume_needs_the_folder_it_continues(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     r = runner.invoke(app, ["run", str(TINY), "--resume"])
