@@ -792,7 +792,9 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     both weighted poses.
     With the rotation threshold between the two angles, the exported graphs keep the weighted pose
     of the pair whose rotations differ more and the classical pose of the other, alone and in the
-    batch, in both graphs, and the next start is the weighted pose either way."""
+    batch, in both graphs, and the next start is the weighted pose either way. The classical solve
+    exported alone (`classical`) gives torch's classical poses, and the flow+pose graph that takes
+    it (`flowpose_weighted`) every output of the batched graph, to the bit."""
 
     import onnxruntime as ort
 
