@@ -28,7 +28,7 @@ def resolve_model_dir(onnx: Path | None) -> Path:
 
 def latency_table(stats: dict) -> Table:
     """Per stage; the classical solve beside completion and encoder (`BESIDE_ROW`) is not in the total."""
-    from d3lvo_deploy.bench import BESIDE_ROW
+    from d3lvo_deploy.odometry import BESIDE_ROW
 
     t = Table(title="latency per frame (ms)")
     for c in ("stage", "mean", "p90", "max"):

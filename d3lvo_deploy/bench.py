@@ -69,8 +69,7 @@ class EngineStream:
     def __call__(self) -> dict[str, float]:
         self.odo.step(*self.frames[self.k % len(self.frames)])
         self.k += 1
-        timing = self.odo.last_timing
-        return {**timing.ms, **({BESIDE_ROW: sum(timing.beside.values())} if timing.beside else {})}
+        return self.odo.last_timing.rows
 
     def finish(self, times: StageTimes, runs: int) -> None:
         """Ends profiling, or else times the same stream pipelined (`pipelined_fps`), with the

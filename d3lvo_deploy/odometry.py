@@ -83,6 +83,11 @@ class FrameTiming:
     def total(self) -> float:
         return sum(self.ms.values())
 
+    @property
+    def rows(self) -> dict[str, float]:
+        """The stage times as the latency tables list them: `ms`, and the time beside as `BESIDE_ROW`."""
+        return {**self.ms, **({BESIDE_ROW: sum(self.beside.values())} if self.beside else {})}
+
 
 class Odometry:
     """Minimal robot-facing API. `calib` is a Calib or a path to a KITTI calib file."""

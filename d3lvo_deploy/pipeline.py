@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import D3LVOInputError
-from .odometry import BESIDE_ROW, STAGES, Odometry
+from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .poses import format_kitti_line, format_tum_line, read_poses
 from .datasets import Recording
@@ -336,10 +336,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     starts.write(format_kitti(odo.motion2) + "\n")
                 fh.write(line + "\n")
                 fh.flush()
-                for k, v in odo.last_timing.ms.items():
-                    summary.latencies_ms[k].append(v)
-                for v in getattr(odo.last_timing, "beside", {}).values():  # on another thread: not in the total
-                    summary.latencies_ms.setdefault(BESIDE_ROW, []).append(v)
+                for k, v in odo.last_timing.rows.items():  # the time beside (another thread) not in the total
+                    summary.latencies_ms.setdefault(k, []).append(v)
                 summary.latencies_ms.setdefault("read", []).append(read_ms)
                 summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
                 summary.wall_s = time.perf_counter() - t_wall0

@@ -5,7 +5,7 @@
 Runs the bundled model in PyTorch on SEQ's first three frames (default: the 20 real KITTI frames
 of ../shared/data) and keeps the inputs of its largest finest-level block (the full-resolution
 image). That block is exported alone as the flow+pose graph's Loop body is (`export/solver_loop.py`'s
-`_Block`, OpenVINO's layout) four ways, each opened with the runtime's OpenVINO session
+`_Block`, OpenVINO's layout) six ways, each opened with the runtime's OpenVINO session
 (`d3lvo_deploy.backends.OpenVinoSession`, 2 threads, inputs read in place) and timed on those
 inputs, taking turns:
 
