@@ -121,7 +121,7 @@ def _solver_sample(model: D3LVO, h: int, w: int, g: torch.Generator) -> dict[str
     names1, names2 = pyramid_input_names(len(model.cfg.pt_iters))
     out = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
            "image_intrinsics": K}
-    if model.cfg.checks_restart_on_scan:  # frame t's LiDAR depth: a return on a random quarter of the pixels
+    if model.cfg.reads_scan:  # frame t's LiDAR depth: a return on a random quarter of the pixels
         depth = 5.0 + 30.0 * torch.rand(1, 1, H, W, generator=g)
         out[SCAN_DEPTH_INPUT] = depth * (torch.rand(1, 1, H, W, generator=g) < 0.25).float()
     return out

@@ -29,9 +29,12 @@ CAMERA_INPUTS = ("intrinsics", "init_pose")
 SOLVER_INPUTS = ("points1", "point_mask1", "image_intrinsics")
 
 
-def solver_input_names(model: D3LVO) -> list[str]:
+def solver_input_names(model: D3LVO, scan: bool | None = None) -> list[str]:
+    """The point solver's inputs; frame t's scan where the graph reads it (`scan`: default the
+    flow+pose graph's `reads_scan`)."""
     grey1, stack2 = pyramid_input_names(len(model.cfg.pt_iters))
-    return grey1 + stack2 + list(SOLVER_INPUTS) + ([SCAN_DEPTH_INPUT] if model.cfg.checks_restart_on_scan else [])
+    scan = model.cfg.reads_scan if scan is None else scan
+    return grey1 + stack2 + list(SOLVER_INPUTS) + ([SCAN_DEPTH_INPUT] if scan else [])
 
 
 def splits_classical(model: D3LVO) -> bool:
@@ -41,7 +44,8 @@ def splits_classical(model: D3LVO) -> bool:
 
 
 def classical_input_names(model: D3LVO) -> list[str]:
-    return solver_input_names(model) + ["init_pose"]
+    """The classical solve reads frame t's scan for the restart's check only."""
+    return solver_input_names(model, model.cfg.checks_restart_on_scan) + ["init_pose"]
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:
@@ -155,5 +159,5 @@ class ClassicalStage(nn.Module):
 
     def forward(self, *tensors):
         byname = dict(zip(self.input_names, tensors))
-        solver = {k: byname[k] for k in solver_input_names(self.model)}
+        solver = {k: byname[k] for k in self.input_names[:-1]}
         return self.model.point_pose.classical_solve(solver, byname["init_pose"])

@@ -41,7 +41,7 @@ class TorchStream:
         # ONNX side's `project` stage makes them
         self.solvers = [SolverFrame.of(image, clean_scan(scan), seq.calib.T_cam2_velo, seq.calib.K2,
                                        point_config(cfg.to_dict()), len(cfg.pt_iters),
-                                       seq.calib.P_velo_to_image2 if cfg.checks_restart_on_scan else None)
+                                       seq.calib.P_velo_to_image2 if cfg.reads_scan else None)
                         for image, scan in self.raw] \
             if cfg.point_solver else None
         self.K = torch.tensor([[pre.K[0, 0], pre.K[1, 1], pre.K[0, 2], pre.K[1, 2]]], dtype=torch.float32)

@@ -12,7 +12,8 @@ COMPLETIONS = ("learned", "ipbasic")
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
-               "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained")
+               "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained",
+               "pt_select_scan", "pt_select_scan_pass")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -132,6 +133,15 @@ class D3LVOConfig:
     # this share of frame t-1's points (weight under 0.5): where the classical pose leaves nothing
     # unexplained, the weighted one had only doubted a poor start. 0: off (docs/model-card.md)
     pt_select_unexplained: float = 0.0
+    # with pt_select, frame t's own LiDAR scan as a second judge (`scan_depth2`,
+    # `point_solver.lidar_depth_error` of the points the network trusts, moved by each pose): above
+    # 0, the weighted pose is kept only where its depth error is at most pt_select_scan times the
+    # classical pose's; above 0, pt_select_scan_pass keeps it also wherever its error is below this
+    # times the classical pose's, whatever the photometric test said. The scan does not read the
+    # images, so a pose that an exposure change or a moving shadow favours does not fit it better
+    # (docs/model-card.md)
+    pt_select_scan: float = 0.0
+    pt_select_scan_pass: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -208,6 +218,10 @@ class D3LVOConfig:
             raise ValueError(f"pt_select_rotation must be in [0, 90) degrees (0: off), not {self.pt_select_rotation!r}")
         if not (isinstance(self.pt_select_unexplained, (int, float)) and 0 <= self.pt_select_unexplained < 1):
             raise ValueError(f"pt_select_unexplained must be a share in [0, 1) (0: off), not {self.pt_select_unexplained!r}")
+        for key in ("pt_select_scan", "pt_select_scan_pass"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and 0 <= value < 100):
+                raise ValueError(f"{key} must be a ratio of depth errors in [0, 100) (0: off), not {value!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):
@@ -235,9 +249,16 @@ class D3LVOConfig:
 
     @property
     def checks_restart_on_scan(self) -> bool:
-        """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`) for the restart's check."""
+        """The solver checks the finest level's restart against frame t's LiDAR depth."""
         return (self.point_solver and self.pt_fine_restart > 0 and self.pt_restart_depth > 0
                 and len(self.pt_iters) > 1)
+
+    @property
+    def reads_scan(self) -> bool:
+        """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`): for the restart's check,
+        or to judge between the weighted and the classical pose."""
+        return self.checks_restart_on_scan or (self.point_solver and self.pt_select > 0 and
+                                               (self.pt_select_scan > 0 or self.pt_select_scan_pass > 0))
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

@@ -239,7 +239,7 @@ class PairDataset(Dataset):
         """The point solver's inputs for sample idx, unaugmented (evaluation; batch of one)."""
         k, i = self.items[idx]
         L = self.loaders[k]
-        feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i, self.cfg.checks_restart_on_scan), L.seq.calib.K2,
+        feeds = solver_feeds(L.solver_frame(i - 1), L.solver_frame(i, self.cfg.reads_scan), L.seq.calib.K2,
                              self.cfg.pt_capacity)
         return {n: torch.from_numpy(np.ascontiguousarray(a)) for n, a in feeds.items()}
 

@@ -30,8 +30,8 @@ from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
 from .layers import conv
-from .point_solver import (SolverSettings, consensus_gain, image_pyramids, project, pyramid_input_names,
-                           rotations_differ, solve)
+from .point_solver import (SolverSettings, consensus_gain, image_pyramids, lidar_depth_error, project,
+                           pyramid_input_names, rotations_differ, solve)
 
 
 def solver_settings(cfg: D3LVOConfig) -> SolverSettings:
@@ -158,6 +158,17 @@ class PointPose(nn.Module):
         return solve(grey1, stack2, solver["points1"], mask, solver["image_intrinsics"], init, self.settings,
                      mask=mask, depth2=solver.get(SCAN_DEPTH_INPUT))[-1]
 
+    @staticmethod
+    def scan_errors(weighted: torch.Tensor, classical: torch.Tensor, solver: dict, weight: torch.Tensor) -> torch.Tensor:
+        """(B,2): `lidar_depth_error` of the weighted and the classical pose (B,4,4) against frame t's
+        scan (`SCAN_DEPTH_INPUT`), over the points the network trusts (weight at least 0.5, as
+        `consensus_gain`'s), both in one batch on one copy of the scan."""
+        two = lambda x: interleave(x, x)  # noqa: E731
+        points, K = solver["points1"], solver["image_intrinsics"]
+        trusted = (weight >= 0.5).to(points.dtype)
+        return lidar_depth_error(interleave(weighted, classical), two(points), two(trusted), solver[SCAN_DEPTH_INPUT],
+                                 two(K)).reshape(-1, 2)
+
     def forward(self, hidden: torch.Tensor, flow: torch.Tensor, feat1: torch.Tensor, feat2: torch.Tensor,
                 invdepth1: torch.Tensor, invdepth2: torch.Tensor, K: torch.Tensor, init: torch.Tensor,
                 solver: dict | None) -> dict:
@@ -203,6 +214,12 @@ class PointPose(nn.Module):
                 unexplained = self.distrusted_against(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, classical,
                                                       solver)
                 keep = keep & (unexplained > self.cfg.pt_select_unexplained)
+            if self.cfg.pt_select_scan > 0 or self.cfg.pt_select_scan_pass > 0:
+                fits = self.scan_errors(levels[-1], classical, solver, weight)  # (B,2): weighted, classical
+                if self.cfg.pt_select_scan > 0:
+                    keep = keep & (fits[:, 0] <= self.cfg.pt_select_scan * fits[:, 1])
+                if self.cfg.pt_select_scan_pass > 0:
+                    keep = keep | (fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1])
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:

@@ -37,7 +37,7 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
         depth = torch.from_numpy(loader.depth_input(i))[None, None].to(dev)
         dense = model.complete(rgb, depth) if model.cfg.uses_depth else None
         cur = (*model.encode(rgb, dense), model.lidar_levels(inverse_depth(depth, model.cfg.min_depth)))
-        solver_cur = loader.solver_frame(i, model.cfg.checks_restart_on_scan) if model.cfg.point_solver else None
+        solver_cur = loader.solver_frame(i, model.cfg.reads_scan) if model.cfg.point_solver else None
         if prev is not None:
             solver = None
             if solver_cur is not None:

@@ -1,6 +1,6 @@
 """Choose `pt_select` and `pt_select_rotation` on validation drives.
 
-    python scripts/selection_rules.py [--ckpt CKPT] DRIVE...
+    python scripts/selection_rules.py [--ckpt CKPT] [--quick] DRIVE...
 
 Runs the checkpoint once per drive (torch, one thread) and records, per pair, the weighted and the
 classical solve's poses and the consensus gain. Each pair starts from the weighted pose whatever is
@@ -15,7 +15,11 @@ the weighted solve run again on half of the points (every second one of the list
 the other half, both ways round, the smaller gain taken (`held_out_gain`). And one that could:
 the network's confidence read again with the classical pose as the motion its evidence is
 measured against, the weighted pose kept only where it still distrusts some of the points (the
-classical pose leaves something unexplained).
+classical pose leaves something unexplained). And frame t's own LiDAR scan as a judge
+(`lidar_depth_error` of the points the network trusts, or of all of them, moved by each pose): the
+weighted pose kept only where it fits the scan at most so much worse than the classical one, or
+also wherever it fits it much better. `--quick` leaves out the rules that need one more solve
+or pass of the network per pair (the gain held out, the confidence against the classical pose).
 """
 
 from __future__ import annotations
@@ -45,6 +49,8 @@ SHIPPED = (0.005, 0.05)
 SHARES = (0.8, 0.7, 0.6, 0.5)  # the most of frame t-1's points the network may distrust
 HELD_OUT = (0.0, 0.002, 0.005, 0.01)
 UNEXPLAINED = (0.05, 0.1, 0.15, 0.2, 0.3)  # the least share distrusted against the classical pose
+SCAN_VETO = (1.0, 1.1, 1.25, 1.5)  # the weighted pose's scan error at most this times the classical one's
+SCAN_PASS = (0.5, 0.7, 0.85)  # ... or kept wherever its scan error is below this times the classical one's
 
 
 def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
@@ -70,21 +76,34 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
                                     weight * halves[1 - i], K)[0]) for i in (0, 1))
 
 
-def record_pairs(model, drive: str) -> list[dict]:
+def scan_errors(A: torch.Tensor, C: torch.Tensor, solver: dict, weight: torch.Tensor) -> dict:
+    """`PointPose.scan_errors` of both poses (batch row 0): over the points the network trusts, as
+    the graph's `pt_select_scan`, and over every point of the list."""
+    out = {}
+    for name, w in (("scan", weight), ("scan_all", solver["point_mask1"])):
+        fits = pose_points.PointPose.scan_errors(A, C, solver, w)[0]
+        out[f"{name}_W"], out[f"{name}_C"] = float(fits[0]), float(fits[1])
+    return out
+
+
+def record_pairs(model, drive: str, quick: bool = False) -> list[dict]:
     """Per pair: gain, weighted pose W and classical pose C (image_2, frame t in frame t-1), the
-    share of the points the network distrusts, the gain held out, the share it distrusts against C."""
+    share of the points the network distrusts, both poses' scan errors (`scan_errors`), and unless
+    `quick` the gain held out and the share it distrusts against C."""
     pairs: list[dict] = []
     forward = pose_points.PointPose.forward
 
     def recording(self, *args):
         out = forward(self, *args)
         if "consensus_gain" in out:
-            pairs.append(dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
-                              C=out["classical"][0].double().numpy(),
-                              share=distrusted_share(out["point_weights"], args[-1]["point_mask1"]),
-                              held_out=held_out_gain(self, args[7], args[-1], out["point_weights"],
-                                                     out["classical"]),
-                              unexplained=float(self.distrusted_against(*args[:7], out["classical"], args[-1])[0])))
+            weight, solver = out["point_weights"], args[-1]
+            pair = dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
+                        C=out["classical"][0].double().numpy(), share=distrusted_share(weight, solver["point_mask1"]),
+                        **scan_errors(out["start_next"], out["classical"], solver, weight))
+            if not quick:
+                pair.update(held_out=held_out_gain(self, args[7], solver, weight, out["classical"]),
+                            unexplained=float(self.distrusted_against(*args[:7], out["classical"], solver)[0]))
+            pairs.append(pair)
         return out
 
     pose_points.PointPose.forward = recording
@@ -114,7 +133,7 @@ def score(drive: Drive, relatives: list[np.ndarray]) -> tuple[float, str]:
     return (r.t_rel, "") if r.t_rel is not None else (r.ate, " ate")
 
 
-def main(drives: list[str], checkpoint: Path) -> None:
+def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
             sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
@@ -124,7 +143,7 @@ def main(drives: list[str], checkpoint: Path) -> None:
     model = build_model(ck)
     pairs = {}
     for drive in drives:
-        pairs[drive] = record_pairs(model, drive)
+        pairs[drive] = record_pairs(model, drive, quick)
         for p in pairs[drive]:
             D = p["C"][:3, :3].T @ p["W"][:3, :3]
             p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
@@ -142,12 +161,23 @@ def main(drives: list[str], checkpoint: Path) -> None:
               for f in SHARES]
     rules.append(("shipped, passed on the last pair too",
                   lambda ps, i: shipped(ps, i) and i > 0 and shipped(ps, i - 1)))
-    rules += [(f"shipped, held-out gain > {g}", lambda ps, i, g=g: shipped(ps, i) and ps[i]["held_out"] > g)
-              for g in HELD_OUT]
-    rules += [(f"held-out gain > {g} pt_select_rotation {SHIPPED[1]}",
-               lambda ps, i, g=g: ps[i]["held_out"] > g and ps[i]["rotation"] > SHIPPED[1]) for g in HELD_OUT]
-    rules += [(f"shipped, distrusted against C > {f}", lambda ps, i, f=f: shipped(ps, i) and ps[i]["unexplained"] > f)
-              for f in UNEXPLAINED]
+    if not quick:
+        rules += [(f"shipped, held-out gain > {g}", lambda ps, i, g=g: shipped(ps, i) and ps[i]["held_out"] > g)
+                  for g in HELD_OUT]
+        rules += [(f"held-out gain > {g} pt_select_rotation {SHIPPED[1]}",
+                   lambda ps, i, g=g: ps[i]["held_out"] > g and ps[i]["rotation"] > SHIPPED[1]) for g in HELD_OUT]
+        rules += [(f"shipped, distrusted against C > {f}",
+                   lambda ps, i, f=f: shipped(ps, i) and ps[i]["unexplained"] > f) for f in UNEXPLAINED]
+    for scan in ("scan", "scan_all"):
+        rules += [(f"shipped, {scan} W <= {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
+                   and ps[i][f"{n}_W"] <= r * ps[i][f"{n}_C"]) for r in SCAN_VETO]
+        rules += [(f"shipped or {scan} W < {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
+                   or ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"]) for r in SCAN_PASS]
+        rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"])
+                  for r in SCAN_PASS]
+        rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
+                   (shipped(ps, i) and ps[i][f"{n}_W"] <= v * ps[i][f"{n}_C"]) or ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"])
+                  for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
         scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
@@ -163,6 +193,8 @@ def main(drives: list[str], checkpoint: Path) -> None:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    quick = "--quick" in args
+    args = [a for a in args if a != "--quick"]
     ckpt = bundled_model_dir() / "default.pt"
     if args[:1] == ["--ckpt"] and len(args) > 1:
         ckpt, args = Path(args[1]), args[2:]
@@ -170,4 +202,4 @@ if __name__ == "__main__":
         sys.exit(__doc__)
     if not ckpt.is_file():
         sys.exit(f"{ckpt}: no such checkpoint")
-    main(args, ckpt)
+    main(args, ckpt, quick)

@@ -453,6 +453,58 @@ def test_the_weighted_pose_is_kept_only_where_the_classical_pose_leaves_points_u
     np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
 
 
+@pytest.mark.parametrize("rule, margin, kept", [("veto", 1.1, "weighted"), ("veto", 0.9, "classical"),
+                                                 ("pass", 1.1, "weighted"), ("pass", 0.9, "classical")])
+def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkeypatch, rule, margin, kept):
+    """PointPose with `pt_select_scan` (veto) and `pt_select_scan_pass` (pass): frame t's scan is the
+    plane seen from the true motion; the mover (the plane's left half moved in the image only,
+    weighted 0) pulls the classical pose, so the weighted pose fits the scan better. The ratio of
+    their depth errors over the trusted points comes from the numpy tracker's `lidar_depth_error`.
+    Veto (the photometric test passes): a ratio threshold just over it keeps the weighted pose,
+    just under it the classical one. Pass (the photometric test fails, pt_select 0.99): a threshold
+    just over the ratio keeps the weighted pose anyway, just under it not."""
+    from models.config import D3LVOConfig
+    from models.point_solver import pyramid_input_names
+    from models.pose_points import PointPose
+
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1 = _t(grey_image(moved))[None, None]
+    right = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310
+    weight = mask.clone()
+    weight[0, : len(X)] = _t(right)
+    # frame t's scan: frame t-1's points seen from frame t (every second one: gaps, as a scan has)
+    h, w = img1.shape[:2]
+    Xt = (X[::2] - A[:3, 3]) @ A[:3, :3]
+    uv = np.rint(Xt[:, :2] / Xt[:, 2:] * np.diag(calib.K2)[:2] + calib.K2[:2, 2]).astype(int)
+    seen = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    depth = np.zeros((h, w), np.float32)
+    depth[uv[seen, 1], uv[seen, 0]] = Xt[seen, 2]
+    grey1, stack2 = image_pyramids(g0, g1, 3)
+    K, init = _k(calib.K2), _t(np.eye(4))[None]
+    settings = SolverSettings((3, 3, 3))
+    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
+    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
+    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1
+    errors = [direct.lidar_depth_error(X[right], P[0].numpy(), depth, calib.K2) for P in (weighted, classical)]
+    ratio = errors[0] / errors[1]
+    print(f"depth errors: weighted {errors[0]:.5f}, classical {errors[1]:.5f}")
+    assert 0 < ratio < 0.9, errors
+    setting = dict(pt_select=0.01, pt_select_scan=ratio * margin) if rule == "veto" else \
+        dict(pt_select=0.99, pt_select_scan_pass=ratio * margin)
+    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_iters=(3, 3, 3), **setting))
+    monkeypatch.setattr(pp, "moving_logits", lambda *args: torch.zeros(1, 1, 44, 152))
+    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
+    names1, names2 = pyramid_input_names(3)
+    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
+              "image_intrinsics": K, "scan_depth2": _t(depth)[None, None]}
+    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
+    want = weighted if kept == "weighted" else classical
+    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
+
+
 def _real_pair():
     from conftest import shared_path
 
@@ -638,6 +690,46 @@ def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, 
     est = read_poses(tmp_path / "p.txt").poses
     np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
+
+
+def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(points_model, small_synth, tmp_path):
+    """Exported with `pt_select_scan_pass` and without the restart (so the scan is read for the
+    choice between the weighted and the classical pose alone; pt_select 0.999: the photometric test
+    never passes), the flow+pose graphs take frame t's scan and the classical solve does not; the
+    torch-free runtime, which solves the classical mode beside the network, gives torch's
+    trajectory under the same settings, which differs from the classical pose kept always. The
+    fixture's last confidence layer is redrawn at std 3, as in the rotation gate's test: an
+    untrained confidence is the same on every point, and the two solves then agree."""
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from export.onnx_export import ExportConfig, export_checkpoint
+    from models.checkpoint import build_model, load_checkpoint, save_checkpoint
+    from models.d3lvo import D3LVO
+    from models.predict import predict_sequence
+
+    solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0)
+    fixture = build_model(load_checkpoint(points_model[0]))
+    model = D3LVO(replace(fixture.cfg, **solver)).eval()
+    model.load_state_dict(fixture.state_dict())
+    torch.manual_seed(1)
+    with torch.no_grad():
+        model.point_pose.moving.net[-1].weight.normal_(std=3.0)
+        model.point_pose.moving.net[-1].bias.zero_()
+    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
+    export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=tmp_path / "o"))
+    stages = load_manifest(tmp_path / "o")["stages"]
+    takes = {name: "scan_depth2" in [i["name"] for i in stage["inputs"]] for name, stage in stages.items()}
+    assert takes == {"completion": False, "encoder": False, "flowpose": True, "classical": False,
+                     "flowpose_weighted": True}
+    ck = load_checkpoint(tmp_path / "ck.pt")
+    torch_traj = predict_sequence(build_model(ck), small_synth)
+    classical = predict_sequence(build_model({**ck, "config": replace(ck["config"], pt_select_scan_pass=0.0)}),
+                                 small_synth)
+    run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
+    est = read_poses(tmp_path / "p.txt").poses
+    np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
+    assert np.abs(torch_traj[:, :3, 3] - classical[:, :3, 3]).max() > 1e-4
 
 
 def test_runtime_feeds_frame_ts_own_scan():
