@@ -246,6 +246,15 @@ MUTATIONS = [
              "            inputs[CLASSICAL_INPUT] = self.model.solve_classical(inputs)\n",
              "            inputs[CLASSICAL_INPUT] = inputs[\"init_pose\"]\n",
              ("tests/test_point_solver.py::test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses",)),
+    Mutation("the scan's pass keeps the weighted pose where it fits the scan worse", "models/pose_points.py",
+             "keep = keep | (fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1])",
+             "keep = keep | (fits[:, 1] < self.cfg.pt_select_scan_pass * fits[:, 0])",
+             ("tests/test_point_solver.py::test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose",
+              "tests/test_point_solver.py::test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch")),
+    Mutation("the scan's errors count every point, not the trusted ones", "models/pose_points.py",
+             "trusted = (weight >= 0.5).to(points.dtype)\n        return lidar_depth_error(",
+             "trusted = (weight >= 0.0).to(points.dtype)\n        return lidar_depth_error(",
+             ("tests/test_point_solver.py::test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose",)),
 ]
 
 

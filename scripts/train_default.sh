@@ -431,3 +431,14 @@ for v in "stride_4:--set pt_median_stride=4" "stride_4_coarse_6:--set pt_median_
 done
 .venv/bin/python -m export.solver_bench --height 375 --width 1242
 .venv/bin/python -m export.solver_bench --height 375 --width 1242 --median-stride 4
+# frame t's scan as a second judge between the weighted and the classical pose (pt_select_scan,
+# pt_select_scan_pass; docs/model-card.md), chosen on the twenty-four validation drives after
+# every run above: the pass at 0.7 ships, set in default.pt and exported into the bundled folder;
+# then the held-out drives and the validation traffic drives with it
+.venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  'd3lvo_deploy/default_model/default.pt', dict(pt_select_scan_pass=0.7))"
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909 "$OUT"/data/val_traffic*; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/scan_pass_$(basename "$d").txt" --overwrite
+done
