@@ -3,7 +3,7 @@ tracker (written separately), cv2, hand-built geometry and its own ONNX export."
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -369,40 +369,74 @@ def test_rotations_differ_by_the_angle_between_them(dtype):
             assert bool(rotations_differ(to(A), to(B), 0.05)[0]) == bool(angle > 0.05)
 
 
+@dataclass
+class _Mover:
+    """The hand-built plane whose left half moves in frame t's image only (weighted 0, `right` the
+    other points), solved with those weights and with every weight 1, as the selection tests read it."""
+    A: np.ndarray
+    calib: object
+    X: np.ndarray
+    img1: np.ndarray
+    right: np.ndarray
+    g0: torch.Tensor
+    g1: torch.Tensor
+    pts: torch.Tensor
+    mask: torch.Tensor
+    weight: torch.Tensor
+    K: torch.Tensor
+    weighted: torch.Tensor
+    classical: torch.Tensor
+
+
+def _mover_on_the_plane() -> _Mover:
+    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
+    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
+    moved = img1.copy()
+    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
+    g1 = _t(grey_image(moved))[None, None]
+    right = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310
+    weight = mask.clone()
+    weight[0, : len(X)] = _t(right)
+    pyramids, K, init = image_pyramids(g0, g1, 3), _k(calib.K2), _t(np.eye(4))[None]
+    settings = SolverSettings((3, 3, 3))
+    weighted = solve(*pyramids, pts, weight, K, init, settings, mask=mask)[-1]
+    classical = solve(*pyramids, pts, mask, K, init, settings, mask=mask)[-1]
+    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1
+    return _Mover(A, calib, X, img1, right, g0, g1, pts, mask, weight, K, weighted, classical)
+
+
+def _kept_pose(monkeypatch, case: _Mover, logits=None, scan: np.ndarray | None = None, **setting) -> torch.Tensor:
+    """The pose PointPose keeps on `case` under the selection `setting`, its confidence the case's
+    weights (`logits`: the confidence net's stand-in, default 0 everywhere)."""
+    from models.config import D3LVOConfig
+    from models.point_solver import pyramid_input_names
+    from models.pose_points import PointPose
+
+    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_iters=(3, 3, 3), **setting))
+    monkeypatch.setattr(pp, "moving_logits", logits or (lambda *args: torch.zeros(1, 1, 44, 152)))
+    monkeypatch.setattr(pp, "point_confidence", lambda *args: case.weight)
+    grey1, stack2 = image_pyramids(case.g0, case.g1, 3)
+    names1, names2 = pyramid_input_names(3)
+    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": case.pts, "point_mask1": case.mask,
+              "image_intrinsics": case.K}
+    if scan is not None:
+        solver["scan_depth2"] = _t(scan)[None, None]
+    init = _t(np.eye(4))[None]
+    return pp(None, None, None, None, None, None, case.K * 0.5, init, solver)["level_matrices"][-1]
+
+
 @pytest.mark.parametrize("margin, kept", [(0.9, "weighted"), (1.1, "classical")])
 def test_the_weighted_pose_is_kept_only_where_its_rotation_differs(monkeypatch, margin, kept):
     """PointPose with `pt_select` and `pt_select_rotation`: with a mover (the plane's left half,
     weighted 0) the weighted pose explains the trusted points far better than the classical one;
     it is kept with the rotation threshold just under the angle between the two poses (numpy's),
     and the classical pose is kept with the threshold just over it."""
-    from models.config import D3LVOConfig
-    from models.point_solver import pyramid_input_names
-    from models.pose_points import PointPose
-
-    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
-    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
-    moved = img1.copy()
-    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
-    g1 = _t(grey_image(moved))[None, None]
-    weight = mask.clone()
-    weight[0, : len(X)] = _t((calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310)
-    grey1, stack2 = image_pyramids(g0, g1, 3)
-    K, init = _k(calib.K2), _t(np.eye(4))[None]
-    settings = SolverSettings((3, 3, 3))
-    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
-    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
-    angle = np.degrees(rotation_angle(weighted[0, :3, :3].numpy().T @ classical[0, :3, :3].numpy()))
-    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1 and angle > 0.01
-    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_select=0.01, pt_iters=(3, 3, 3),
-                                     pt_select_rotation=float(angle * margin)))
-    monkeypatch.setattr(pp, "moving_logits", lambda *args: torch.zeros(1, 1, 44, 152))
-    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
-    names1, names2 = pyramid_input_names(3)
-    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
-              "image_intrinsics": K}
-    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
-    want = weighted if kept == "weighted" else classical
-    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
+    case = _mover_on_the_plane()
+    angle = np.degrees(rotation_angle(case.weighted[0, :3, :3].numpy().T @ case.classical[0, :3, :3].numpy()))
+    assert angle > 0.01
+    got = _kept_pose(monkeypatch, case, pt_select=0.01, pt_select_rotation=float(angle * margin))
+    want = case.weighted if kept == "weighted" else case.classical
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-9)
 
 
 @pytest.mark.parametrize("margin, kept", [(0.9, "weighted"), (1.1, "classical")])
@@ -414,43 +448,20 @@ def test_the_weighted_pose_is_kept_only_where_the_classical_pose_leaves_points_u
     distrusted. Here the second reading distrusts the plane's left half, whose share of the
     valid points is counted in numpy: a threshold just under it keeps the weighted pose, just over
     it the classical one."""
-    from models.config import D3LVOConfig
-    from models.point_solver import pyramid_input_names
-    from models.pose_points import PointPose
-
-    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
-    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
-    moved = img1.copy()
-    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
-    g1 = _t(grey_image(moved))[None, None]
-    right = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310
-    weight = mask.clone()
-    weight[0, : len(X)] = _t(right)
-    share = float((~right).sum()) / len(X)  # the left half, distrusted, among the valid points
-    assert 0.2 < share < 0.8 and int(mask.sum()) == len(X)
-    grey1, stack2 = image_pyramids(g0, g1, 3)
-    K, init = _k(calib.K2), _t(np.eye(4))[None]
-    settings = SolverSettings((3, 3, 3))
-    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
-    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
-    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_select=0.01, pt_iters=(3, 3, 3),
-                                     pt_select_unexplained=share * margin))
+    case = _mover_on_the_plane()
+    share = float((~case.right).sum()) / len(case.X)  # the left half, distrusted, among the valid points
+    assert 0.2 < share < 0.8 and int(case.mask.sum()) == len(case.X)
     motions = []
 
     def logits(*args):
         motions.append(args[-1])
         return torch.zeros(1, 1, 44, 152)
 
-    monkeypatch.setattr(pp, "moving_logits", logits)
-    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
-    names1, names2 = pyramid_input_names(3)
-    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
-              "image_intrinsics": K}
-    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
-    assert len(motions) == 2 and motions[0] is init
-    np.testing.assert_allclose(motions[1].numpy(), classical.numpy(), atol=1e-9)
-    want = weighted if kept == "weighted" else classical
-    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
+    got = _kept_pose(monkeypatch, case, logits, pt_select=0.01, pt_select_unexplained=share * margin)
+    assert len(motions) == 2 and np.array_equal(motions[0].numpy(), np.eye(4)[None])
+    np.testing.assert_allclose(motions[1].numpy(), case.classical.numpy(), atol=1e-9)
+    want = case.weighted if kept == "weighted" else case.classical
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-9)
 
 
 @pytest.mark.parametrize("rule, margin, kept", [("veto", 1.1, "weighted"), ("veto", 0.9, "classical"),
@@ -463,46 +474,25 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     Veto (the photometric test passes): a ratio threshold just over it keeps the weighted pose,
     just under it the classical one. Pass (the photometric test fails, pt_select 0.99): a threshold
     just over the ratio keeps the weighted pose anyway, just under it not."""
-    from models.config import D3LVOConfig
-    from models.point_solver import pyramid_input_names
-    from models.pose_points import PointPose
-
-    A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
-    calib, (_, img1, _), (g0, _, pts, mask), X = _plane_inputs(A)
-    moved = img1.copy()
-    moved[:, :280] = np.roll(img1, 25, axis=1)[:, :280]
-    g1 = _t(grey_image(moved))[None, None]
-    right = (calib.K2[0, 0] * X[:, 0] / X[:, 2] + calib.K2[0, 2]) >= 310
-    weight = mask.clone()
-    weight[0, : len(X)] = _t(right)
+    case = _mover_on_the_plane()
+    A, K2 = case.A, case.calib.K2
     # frame t's scan: frame t-1's points seen from frame t (every second one: gaps, as a scan has)
-    h, w = img1.shape[:2]
-    Xt = (X[::2] - A[:3, 3]) @ A[:3, :3]
-    uv = np.rint(Xt[:, :2] / Xt[:, 2:] * np.diag(calib.K2)[:2] + calib.K2[:2, 2]).astype(int)
+    h, w = case.img1.shape[:2]
+    Xt = (case.X[::2] - A[:3, 3]) @ A[:3, :3]
+    uv = np.rint(Xt[:, :2] / Xt[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
     seen = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     depth = np.zeros((h, w), np.float32)
     depth[uv[seen, 1], uv[seen, 0]] = Xt[seen, 2]
-    grey1, stack2 = image_pyramids(g0, g1, 3)
-    K, init = _k(calib.K2), _t(np.eye(4))[None]
-    settings = SolverSettings((3, 3, 3))
-    weighted = solve(grey1, stack2, pts, weight, K, init, settings, mask=mask)[-1]
-    classical = solve(grey1, stack2, pts, mask, K, init, settings, mask=mask)[-1]
-    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1
-    errors = [direct.lidar_depth_error(X[right], P[0].numpy(), depth, calib.K2) for P in (weighted, classical)]
-    ratio = errors[0] / errors[1]
+    errors = [direct.lidar_depth_error(case.X[case.right], P[0].numpy(), depth, K2)
+              for P in (case.weighted, case.classical)]
     print(f"depth errors: weighted {errors[0]:.5f}, classical {errors[1]:.5f}")
+    ratio = errors[0] / errors[1]
     assert 0 < ratio < 0.9, errors
     setting = dict(pt_select=0.01, pt_select_scan=ratio * margin) if rule == "veto" else \
         dict(pt_select=0.99, pt_select_scan_pass=ratio * margin)
-    pp = PointPose(D3LVOConfig.small(pose_head="points", pt_iters=(3, 3, 3), **setting))
-    monkeypatch.setattr(pp, "moving_logits", lambda *args: torch.zeros(1, 1, 44, 152))
-    monkeypatch.setattr(pp, "point_confidence", lambda *args: weight)
-    names1, names2 = pyramid_input_names(3)
-    solver = {**dict(zip(names1, grey1)), **dict(zip(names2, stack2)), "points1": pts, "point_mask1": mask,
-              "image_intrinsics": K, "scan_depth2": _t(depth)[None, None]}
-    out = pp(None, None, None, None, None, None, K * 0.5, init, solver)
-    want = weighted if kept == "weighted" else classical
-    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), want.numpy(), atol=1e-9)
+    got = _kept_pose(monkeypatch, case, scan=depth, **setting)
+    want = case.weighted if kept == "weighted" else case.classical
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-9)
 
 
 def _real_pair():
