@@ -136,8 +136,10 @@ class D3LVOConfig:
     # with pt_select, frame t's own LiDAR scan as a second judge (`scan_depth2`,
     # `point_solver.lidar_depth_error` of the points the network trusts, moved by each pose): above
     # 0, the weighted pose is kept only where its depth error is at most pt_select_scan times the
-    # classical pose's; above 0, pt_select_scan_pass keeps it also wherever its error is below this
-    # times the classical pose's, whatever the photometric test said. The scan does not read the
+    # classical pose's; above 0 (at most 1), pt_select_scan_pass keeps it also wherever its error is
+    # below this times the classical pose's, whatever the photometric test said. Only where both
+    # poses put trusted points on the scan's returns; training's samples carry no scan, so there the
+    # photometric test alone decides. The scan does not read the
     # images, so a pose that an exposure change or a moving shadow favours does not fit it better
     # (docs/model-card.md)
     pt_select_scan: float = 0.0
@@ -218,10 +220,11 @@ class D3LVOConfig:
             raise ValueError(f"pt_select_rotation must be in [0, 90) degrees (0: off), not {self.pt_select_rotation!r}")
         if not (isinstance(self.pt_select_unexplained, (int, float)) and 0 <= self.pt_select_unexplained < 1):
             raise ValueError(f"pt_select_unexplained must be a share in [0, 1) (0: off), not {self.pt_select_unexplained!r}")
-        for key in ("pt_select_scan", "pt_select_scan_pass"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and 0 <= value < 100):
-                raise ValueError(f"{key} must be a ratio of depth errors in [0, 100) (0: off), not {value!r}")
+        if not (isinstance(self.pt_select_scan, (int, float)) and 0 <= self.pt_select_scan < 100):
+            raise ValueError(f"pt_select_scan must be a ratio of depth errors in [0, 100) (0: off), not {self.pt_select_scan!r}")
+        if not (isinstance(self.pt_select_scan_pass, (int, float)) and 0 <= self.pt_select_scan_pass <= 1):
+            raise ValueError("pt_select_scan_pass must be a ratio of depth errors in [0, 1] (0: off; above 1 it "
+                             f"would keep a weighted pose that fits the scan worse), not {self.pt_select_scan_pass!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

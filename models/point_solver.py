@@ -37,6 +37,9 @@ from .layers import full_precision
 from .sampling import image_size
 
 MAD_TO_SIGMA = 1.4826
+# what a masked median sorts last: far above any residual of [0, 1] images or relative depth
+# error, and `lidar_depth_error` where no point lands on a return (no evidence)
+NO_EVIDENCE = 1e9
 HUBER_K = 1.345
 _PYR = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0])
 
@@ -110,7 +113,7 @@ def masked_median(a: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     count): (..., N) -> (..., 1). Masked-out values sort last behind a constant far above any
     residual of [0, 1] images; the middle indices floor((n - 1) / 2), floor(n / 2) never pass N // 2,
     so the smallest N // 2 + 1 values, a partial sort, hold both."""
-    v, _ = torch.topk(torch.where(mask > 0, a, literal(1e9, a)), int(a.shape[-1]) // 2 + 1, dim=-1, largest=False)
+    v, _ = torch.topk(torch.where(mask > 0, a, literal(NO_EVIDENCE, a)), int(a.shape[-1]) // 2 + 1, dim=-1, largest=False)
     middle = torch.floor((mask.sum(-1, keepdim=True) + literal([-1.0, 0.0], a)) * 0.5).clamp(min=0).long()
     return torch.gather(v, -1, middle).mean(-1, keepdim=True)
 

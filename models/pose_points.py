@@ -30,7 +30,7 @@ from . import gauss_newton as gn
 from .config import D3LVOConfig
 from .flow import warp
 from .layers import conv
-from .point_solver import (SolverSettings, consensus_gain, image_pyramids, lidar_depth_error, project,
+from .point_solver import (NO_EVIDENCE, SolverSettings, consensus_gain, image_pyramids, lidar_depth_error, project,
                            pyramid_input_names, rotations_differ, solve)
 
 
@@ -214,12 +214,15 @@ class PointPose(nn.Module):
                 unexplained = self.distrusted_against(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, classical,
                                                       solver)
                 keep = keep & (unexplained > self.cfg.pt_select_unexplained)
-            if self.cfg.pt_select_scan > 0 or self.cfg.pt_select_scan_pass > 0:
+            if (self.cfg.pt_select_scan > 0 or self.cfg.pt_select_scan_pass > 0) and SCAN_DEPTH_INPUT in solver:
+                # (training's samples carry no scan: there the photometric test alone decides)
                 fits = self.scan_errors(levels[-1], classical, solver, weight)  # (B,2): weighted, classical
+                # both poses put trusted points on frame t's returns (else 1e9): the scan judges
+                evidence = (fits < NO_EVIDENCE).all(1)
                 if self.cfg.pt_select_scan > 0:
-                    keep = keep & (fits[:, 0] <= self.cfg.pt_select_scan * fits[:, 1])
+                    keep = keep & ((fits[:, 0] <= self.cfg.pt_select_scan * fits[:, 1]) | ~evidence)
                 if self.cfg.pt_select_scan_pass > 0:
-                    keep = keep | (fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1])
+                    keep = keep | ((fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1]) & evidence)
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
         else:

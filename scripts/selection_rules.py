@@ -18,8 +18,10 @@ measured against, the weighted pose kept only where it still distrusts some of t
 classical pose leaves something unexplained). And frame t's own LiDAR scan as a judge
 (`lidar_depth_error` of the points the network trusts, or of all of them, moved by each pose): the
 weighted pose kept only where it fits the scan at most so much worse than the classical one, or
-also wherever it fits it much better. `--quick` leaves out the rules that need one more solve
-or pass of the network per pair (the gain held out, the confidence against the classical pose).
+also wherever it fits it much better (where the checkpoint's graph reads that scan). `--quick`
+leaves out the rules that need one more solve or pass of the network per pair (the gain held out,
+the confidence against the classical pose). `shipped` in a rule's name: the photometric test at
+the shipped thresholds (`pt_select` 0.005, `pt_select_rotation` 0.05).
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ from d3lvo_deploy.sequence import KittiSequence
 from d3lvo_deploy.synth.generator import drive_traffic
 from models import pose_points
 from models.checkpoint import build_model, load_checkpoint
-from models.point_solver import consensus_gain, solve
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+from models.point_solver import NO_EVIDENCE, consensus_gain, solve
 from models.predict import predict_sequence
 
 GAINS = (0.003, 0.005, 0.0075, 0.01, 0.02)
@@ -98,8 +101,9 @@ def record_pairs(model, drive: str, quick: bool = False) -> list[dict]:
         if "consensus_gain" in out:
             weight, solver = out["point_weights"], args[-1]
             pair = dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
-                        C=out["classical"][0].double().numpy(), share=distrusted_share(weight, solver["point_mask1"]),
-                        **scan_errors(out["start_next"], out["classical"], solver, weight))
+                        C=out["classical"][0].double().numpy(), share=distrusted_share(weight, solver["point_mask1"]))
+            if SCAN_DEPTH_INPUT in solver:  # the checkpoint's graph reads frame t's scan
+                pair.update(scan_errors(out["start_next"], out["classical"], solver, weight))
             if not quick:
                 pair.update(held_out=held_out_gain(self, args[7], solver, weight, out["classical"]),
                             unexplained=float(self.distrusted_against(*args[:7], out["classical"], solver)[0]))
@@ -168,15 +172,23 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
                    lambda ps, i, g=g: ps[i]["held_out"] > g and ps[i]["rotation"] > SHIPPED[1]) for g in HELD_OUT]
         rules += [(f"shipped, distrusted against C > {f}",
                    lambda ps, i, f=f: shipped(ps, i) and ps[i]["unexplained"] > f) for f in UNEXPLAINED]
-    for scan in ("scan", "scan_all"):
+    def fits(ps, i, n: str, r: float, strict: bool) -> bool | None:
+        """W's scan error at most (below, `strict`) r times C's; None where a pose puts no trusted
+        point on a return (the graph's `NO_EVIDENCE`): there the scan does not judge."""
+        w, c = ps[i][f"{n}_W"], ps[i][f"{n}_C"]
+        if max(w, c) >= NO_EVIDENCE:
+            return None
+        return w < r * c if strict else w <= r * c
+
+    for scan in ("scan", "scan_all") if all("scan_W" in p for ps in pairs.values() for p in ps) else ():
         rules += [(f"shipped, {scan} W <= {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
-                   and ps[i][f"{n}_W"] <= r * ps[i][f"{n}_C"]) for r in SCAN_VETO]
+                   and fits(ps, i, n, r, False) is not False) for r in SCAN_VETO]
         rules += [(f"shipped or {scan} W < {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
-                   or ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"]) for r in SCAN_PASS]
-        rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"])
+                   or bool(fits(ps, i, n, r, True))) for r in SCAN_PASS]
+        rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: bool(fits(ps, i, n, r, True)))
                   for r in SCAN_PASS]
         rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
-                   (shipped(ps, i) and ps[i][f"{n}_W"] <= v * ps[i][f"{n}_C"]) or ps[i][f"{n}_W"] < r * ps[i][f"{n}_C"])
+                   (shipped(ps, i) and fits(ps, i, n, v, False) is not False) or bool(fits(ps, i, n, r, True)))
                   for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:

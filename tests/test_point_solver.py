@@ -386,6 +386,7 @@ class _Mover:
     K: torch.Tensor
     weighted: torch.Tensor
     classical: torch.Tensor
+    gain: float  # the weighted pose's MSAC gain over the classical one (`consensus_gain`)
 
 
 def _mover_on_the_plane() -> _Mover:
@@ -401,8 +402,9 @@ def _mover_on_the_plane() -> _Mover:
     settings = SolverSettings((3, 3, 3))
     weighted = solve(*pyramids, pts, weight, K, init, settings, mask=mask)[-1]
     classical = solve(*pyramids, pts, mask, K, init, settings, mask=mask)[-1]
-    assert float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0]) > 0.1
-    return _Mover(A, calib, X, img1, right, g0, g1, pts, mask, weight, K, weighted, classical)
+    gain = float(consensus_gain(weighted, classical, g0, g1, pts, weight, K)[0])
+    assert gain > 0.1
+    return _Mover(A, calib, X, img1, right, g0, g1, pts, mask, weight, K, weighted, classical, gain)
 
 
 def _kept_pose(monkeypatch, case: _Mover, logits=None, scan: np.ndarray | None = None, **setting) -> torch.Tensor:
@@ -488,11 +490,43 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     print(f"depth errors: weighted {errors[0]:.5f}, classical {errors[1]:.5f}")
     ratio = errors[0] / errors[1]
     assert 0 < ratio < 0.9, errors
+    assert case.gain < 0.99  # the pass cases' photometric test fails
     setting = dict(pt_select=0.01, pt_select_scan=ratio * margin) if rule == "veto" else \
         dict(pt_select=0.99, pt_select_scan_pass=ratio * margin)
     got = _kept_pose(monkeypatch, case, scan=depth, **setting)
     want = case.weighted if kept == "weighted" else case.classical
     np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-9)
+    # a scan with no return under the trusted points is no evidence: the photometric test decides
+    empty = np.where(np.arange(w)[None, :] < 300, depth, 0.0).astype(np.float32)
+    assert direct.lidar_depth_error(case.X[case.right], case.weighted[0].numpy(), empty, K2) == np.inf
+    photometric = case.weighted if rule == "veto" else case.classical
+    np.testing.assert_allclose(_kept_pose(monkeypatch, case, scan=empty, **setting).numpy(), photometric.numpy(),
+                               atol=1e-9)
+
+
+def test_scan_errors_of_two_pairs_are_each_pairs_own():
+    """`PointPose.scan_errors` batched over two pairs (each with its weighted and classical pose,
+    its own points, weights and scan) gives each pose's numpy `lidar_depth_error` over that pair's
+    trusted points against that pair's scan; the scans differ, so a row read against the other
+    pair's scan would show."""
+    from models.pose_points import PointPose
+
+    rng = np.random.default_rng(2)
+    K = np.array([[100.0, 0, 10], [0, 100.0, 10], [0, 0, 1]])
+    X = [np.stack([rng.uniform(-0.8, 0.8, 60), rng.uniform(-0.8, 0.8, 60), rng.uniform(4, 12, 60)], 1) for _ in range(2)]
+    weight = [rng.uniform(0.0, 1.0, 60) for _ in range(2)]
+    depths = [np.where(rng.random((21, 21)) < 0.6, rng.uniform(3, 12, (21, 21)), 0).astype(np.float32)
+              for _ in range(2)]
+    W = [make_se3(axis_angle_to_rot([0, 0.01 * j, 0]), [0.0, 0.0, 0.2 + 0.3 * j]) for j in range(2)]
+    C = [make_se3(axis_angle_to_rot([0.02 * j, 0, 0]), [0.1, 0.0, 0.5 * j]) for j in range(2)]
+    solver = {"points1": _t(np.stack(X)), "image_intrinsics": _k(K).repeat(2, 1),
+              "scan_depth2": _t(np.stack(depths))[:, None]}
+    got = PointPose.scan_errors(_t(np.stack(W)), _t(np.stack(C)), solver, _t(np.stack(weight))).numpy()
+    for i in range(2):
+        trusted = X[i][weight[i] >= 0.5]
+        want = [direct.lidar_depth_error(trusted, A, depths[i], K) for A in (W[i], C[i])]
+        np.testing.assert_allclose(got[i], want, rtol=1e-6)
+    assert direct.lidar_depth_error(X[0][weight[0] >= 0.5], W[0], depths[1], K) != pytest.approx(got[0, 0])
 
 
 def _real_pair():
