@@ -496,12 +496,23 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     got = _kept_pose(monkeypatch, case, scan=depth, **setting)
     want = case.weighted if kept == "weighted" else case.classical
     np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-9)
-    # a scan with no return under the trusted points is no evidence: the photometric test decides
+    # where a pose puts no trusted point on a return, the scan is no evidence and the photometric
+    # test decides: the scan without the returns under the classical pose's trusted points (the
+    # weighted pose's land on others), and with none under either pose's
+    M = np.linalg.inv(case.classical[0].numpy())
+    Xc = case.X[case.right] @ M[:3, :3].T + M[:3, 3]
+    uc = np.rint(Xc[:, :2] / Xc[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
+    inside = (uc[:, 0] >= 0) & (uc[:, 0] < w) & (uc[:, 1] >= 0) & (uc[:, 1] < h)
+    one_sided = depth.copy()
+    one_sided[uc[inside, 1], uc[inside, 0]] = 0.0
     empty = np.where(np.arange(w)[None, :] < 300, depth, 0.0).astype(np.float32)
-    assert direct.lidar_depth_error(case.X[case.right], case.weighted[0].numpy(), empty, K2) == np.inf
     photometric = case.weighted if rule == "veto" else case.classical
-    np.testing.assert_allclose(_kept_pose(monkeypatch, case, scan=empty, **setting).numpy(), photometric.numpy(),
-                               atol=1e-9)
+    for scan, weighted_sees in ((one_sided, True), (empty, False)):
+        errors = [direct.lidar_depth_error(case.X[case.right], P[0].numpy(), scan, K2)
+                  for P in (case.weighted, case.classical)]
+        assert np.isinf(errors[1]) and np.isfinite(errors[0]) == weighted_sees, errors
+        np.testing.assert_allclose(_kept_pose(monkeypatch, case, scan=scan, **setting).numpy(), photometric.numpy(),
+                                   atol=1e-9)
 
 
 def test_scan_errors_of_two_pairs_are_each_pairs_own():
