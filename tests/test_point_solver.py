@@ -499,20 +499,37 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     # where a pose puts no trusted point on a return, the scan is no evidence and the photometric
     # test decides: the scan without the returns under the classical pose's trusted points (the
     # weighted pose's land on others), and with none under either pose's
-    M = np.linalg.inv(case.classical[0].numpy())
-    Xc = case.X[case.right] @ M[:3, :3].T + M[:3, 3]
-    uc = np.rint(Xc[:, :2] / Xc[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
-    inside = (uc[:, 0] >= 0) & (uc[:, 0] < w) & (uc[:, 1] >= 0) & (uc[:, 1] < h)
-    one_sided = depth.copy()
-    one_sided[uc[inside, 1], uc[inside, 0]] = 0.0
+    def without_returns_under(pose: torch.Tensor) -> np.ndarray:
+        M = np.linalg.inv(pose[0].numpy())
+        Xp = case.X[case.right] @ M[:3, :3].T + M[:3, 3]
+        up = np.rint(Xp[:, :2] / Xp[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
+        inside = (up[:, 0] >= 0) & (up[:, 0] < w) & (up[:, 1] >= 0) & (up[:, 1] < h)
+        scan = depth.copy()
+        scan[up[inside, 1], up[inside, 0]] = 0.0
+        return scan
+
     empty = np.where(np.arange(w)[None, :] < 300, depth, 0.0).astype(np.float32)
     photometric = case.weighted if rule == "veto" else case.classical
-    for scan, weighted_sees in ((one_sided, True), (empty, False)):
+    for scan, sees in ((without_returns_under(case.classical), (True, False)),
+                       (without_returns_under(case.weighted), (False, True)), (empty, (False, False))):
         errors = [direct.lidar_depth_error(case.X[case.right], P[0].numpy(), scan, K2)
                   for P in (case.weighted, case.classical)]
-        assert np.isinf(errors[1]) and np.isfinite(errors[0]) == weighted_sees, errors
+        assert tuple(np.isfinite(errors)) == sees, errors
         np.testing.assert_allclose(_kept_pose(monkeypatch, case, scan=scan, **setting).numpy(), photometric.numpy(),
                                    atol=1e-9)
+    # without a scan at all (training's samples): the photometric test decides
+    np.testing.assert_allclose(_kept_pose(monkeypatch, case, **setting).numpy(), photometric.numpy(), atol=1e-9)
+
+
+@pytest.mark.parametrize("key, value", [("pt_select_scan_pass", 1.01), ("pt_select_scan_pass", -0.1),
+                                        ("pt_select_scan", 100.0)])
+def test_the_scan_judges_ratios_are_checked(key, value):
+    """A pass above 1 would keep a weighted pose that fits the scan worse; both ratios are refused
+    outside their ranges, by name."""
+    from models.config import D3LVOConfig
+
+    with pytest.raises(ValueError, match=key):
+        D3LVOConfig.small(pose_head="points", **{key: value})
 
 
 def test_scan_errors_of_two_pairs_are_each_pairs_own():
