@@ -1,4 +1,4 @@
-"""Choose `pt_select` and `pt_select_rotation` on validation drives.
+"""Choose `pt_select`, `pt_select_rotation` and the scan's judgement (`pt_select_scan[_pass]`) on validation drives.
 
     python scripts/selection_rules.py [--ckpt CKPT] [--quick] DRIVE...
 
