@@ -139,9 +139,8 @@ class D3LVOConfig:
     # classical pose's; above 0 (at most 1), pt_select_scan_pass keeps it also wherever its error is
     # below this times the classical pose's, whatever the photometric test said. Only where both
     # poses put trusted points on the scan's returns; training's samples carry no scan, so there the
-    # photometric test alone decides. The scan does not read the
-    # images, so a pose that an exposure change or a moving shadow favours does not fit it better
-    # (docs/model-card.md)
+    # photometric test alone decides. The scan does not read the images, so a pose that an exposure
+    # change or a moving shadow favours does not fit it better (docs/model-card.md)
     pt_select_scan: float = 0.0
     pt_select_scan_pass: float = 0.0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain

@@ -37,12 +37,12 @@ import torch
 from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.geometry import accumulate, change_frame, rotation_angle_precise
+from d3lvo_deploy.points import SCAN_DEPTH_INPUT
 from d3lvo_deploy.poses import Trajectory, read_poses
 from d3lvo_deploy.sequence import KittiSequence
 from d3lvo_deploy.synth.generator import drive_traffic
 from models import pose_points
 from models.checkpoint import build_model, load_checkpoint
-from d3lvo_deploy.points import SCAN_DEPTH_INPUT
 from models.point_solver import NO_EVIDENCE, consensus_gain, solve
 from models.predict import predict_sequence
 
@@ -81,7 +81,7 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
 
 def scan_errors(A: torch.Tensor, C: torch.Tensor, solver: dict, weight: torch.Tensor) -> dict:
     """`PointPose.scan_errors` of both poses (batch row 0): over the points the network trusts, as
-    the graph's `pt_select_scan`, and over every point of the list."""
+    the graph's judge counts them, and over every point of the list."""
     out = {}
     for name, w in (("scan", weight), ("scan_all", solver["point_mask1"])):
         fits = pose_points.PointPose.scan_errors(A, C, solver, w)[0]
