@@ -478,13 +478,21 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     just over the ratio keeps the weighted pose anyway, just under it not."""
     case = _mover_on_the_plane()
     A, K2 = case.A, case.calib.K2
-    # frame t's scan: frame t-1's points seen from frame t (every second one: gaps, as a scan has)
     h, w = case.img1.shape[:2]
-    Xt = (case.X[::2] - A[:3, 3]) @ A[:3, :3]
-    uv = np.rint(Xt[:, :2] / Xt[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
-    seen = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+
+    def seen_from(motion: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows, columns (the nearest pixel) and depths in frame t of frame t-1's points X under the
+        motion (frame t in frame t-1), those landing in the image."""
+        M = np.linalg.inv(motion)
+        Xt = X @ M[:3, :3].T + M[:3, 3]
+        u, v = np.rint(Xt[:, :2] / Xt[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int).T
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        return v[inside], u[inside], Xt[inside, 2]
+
+    # frame t's scan: frame t-1's points seen from frame t (every second one: gaps, as a scan has)
     depth = np.zeros((h, w), np.float32)
-    depth[uv[seen, 1], uv[seen, 0]] = Xt[seen, 2]
+    rows, cols, z = seen_from(A, case.X[::2])
+    depth[rows, cols] = z
     errors = [direct.lidar_depth_error(case.X[case.right], P[0].numpy(), depth, K2)
               for P in (case.weighted, case.classical)]
     print(f"depth errors: weighted {errors[0]:.5f}, classical {errors[1]:.5f}")
@@ -500,12 +508,9 @@ def test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose(monkey
     # test decides: the scan without the returns under the classical pose's trusted points (the
     # weighted pose's land on others), and with none under either pose's
     def without_returns_under(pose: torch.Tensor) -> np.ndarray:
-        M = np.linalg.inv(pose[0].numpy())
-        Xp = case.X[case.right] @ M[:3, :3].T + M[:3, 3]
-        up = np.rint(Xp[:, :2] / Xp[:, 2:] * np.diag(K2)[:2] + K2[:2, 2]).astype(int)
-        inside = (up[:, 0] >= 0) & (up[:, 0] < w) & (up[:, 1] >= 0) & (up[:, 1] < h)
         scan = depth.copy()
-        scan[up[inside, 1], up[inside, 0]] = 0.0
+        rows, cols, _ = seen_from(pose[0].numpy(), case.X[case.right])
+        scan[rows, cols] = 0.0
         return scan
 
     empty = np.where(np.arange(w)[None, :] < 300, depth, 0.0).astype(np.float32)
