@@ -3,6 +3,8 @@ and a results folder that holds everything about the run."""
 
 from __future__ import annotations
 
+import inspect
+import typing
 import warnings
 from pathlib import Path
 
@@ -150,12 +152,30 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     if unknown:
         raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
+    hints = typing.get_type_hints(inspect.unwrap(run_command))
     for k, v in table.items():
         if k == "fmt" and (given("path") or given("seq_dir")):
             continue  # another recording: its own format, guessed again
         if not given(k):
-            opts[k] = Path(v) if k in ("path", "calib", "gt", "onnx") else v
+            opts[k] = _config_value(config, k, v, hints[k])
     return opts
+
+
+def _config_value(config: Path, key: str, value, hint):
+    """A [run] value as the option's type (a path from its string), or one error naming the key:
+    a hand-edited `threads = "two"` would otherwise fail deep inside the run."""
+    kind = next((t for t in typing.get_args(hint) if t is not type(None)), hint)
+    if kind is bool:
+        ok, what = isinstance(value, bool), "true or false"
+    elif kind is int:
+        ok, what = isinstance(value, int) and not isinstance(value, bool), "a whole number"
+    elif kind is float:
+        ok, what = isinstance(value, (int, float)) and not isinstance(value, bool), "a number"
+    else:
+        ok, what = isinstance(value, str), "a quoted string" + (" (a path)" if kind is Path else "")
+    if not ok:
+        raise D3LVOInputError(config, f"[run] {key} = {value!r}: expected {what}")
+    return Path(value) if kind is Path else float(value) if kind is float else value
 
 
 def _check_model(config: Path, run: dict, opts: dict) -> None:
@@ -188,16 +208,27 @@ def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_t
     return open_sequence(path if path is not None else seq_dir, fmt, gt=gt, calib=calib, bag=bag)
 
 
+def _check_ground_truth(seq) -> None:
+    """A ground truth that cannot score the run (missing, unreadable, another length) is one error
+    before the first frame, not after the last."""
+    seq.ground_truth  # noqa: B018 - reads and checks it (one pose per frame) where the recording has one
+
+
 def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
          out_path, pose_fmt, config, sequences, engine, workers, address, chunk, overlap, onnx, start, end, resume,
          overwrite, viz, viz_every, rerun, gt, plot, provider, threads, backend, ov_precision, optimization, realtime,
          pipeline, method, classical_beside) -> None:
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
-    from d3lvo_deploy.results import ResultsFolder, default_folder
+    from d3lvo_deploy.results import CONFIG, ResultsFolder, default_folder, record_file
 
     if method not in ("d3lvo", "direct"):
         raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
+    if out_path is not None and out_dir is not None:
+        raise D3LVOInputError(None, "--out writes one trajectory file and --out-dir a results folder: name one of them")
+    if resume and overwrite:
+        raise D3LVOInputError(None, "--resume continues the poses already written and --overwrite starts over: "
+                                    "name one of them")
     if plot is not None:
         from d3lvo_deploy.extras import require
 
@@ -211,6 +242,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                                     "(results/latest is the newest)")
     seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
                           max_dt)
+    _check_ground_truth(seq)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision, classical_beside=classical_beside)
     sc.check()
@@ -244,6 +276,13 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         out_path, pose_fmt = folder.poses, "kitti"
         viz = None if viz is None else (viz if viz.is_absolute() else folder.path / viz)
         rerun = None if rerun is None else (rerun if rerun.is_absolute() else folder.path / rerun)
+    absolute = lambda p: None if p is None else Path(p).resolve()  # noqa: E731 - repeatable from anywhere
+    record = dict(path=seq.root.resolve(), fmt=seq.format_name, calib=absolute(calib), image_topic=image_topic,
+                  cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt), onnx=absolute(onnx),
+                  method=method, start=start, end=end, provider=provider)
+    record_path = folder.path / CONFIG if folder is not None else record_file(out_path)
+    if resume:
+        _check_resume(record_path, out_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx))
     rc = RunConfig(out=out_path, fmt=pose_fmt, start=start, end=end, resume=resume, overwrite=overwrite,
                    realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun, pipeline=pipeline)
     with warnings.catch_warnings(record=True) as caught:
@@ -261,21 +300,18 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     _print_warnings(caught)
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
     engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"
+    record.update(threads=sc.engine_threads,  # the count used
+                  backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
+                  optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline,
+                  classical_beside=classical_beside)
     if folder is not None:
-        absolute = lambda p: None if p is None else Path(p).resolve()  # noqa: E731 - repeatable from anywhere
-        record = dict(path=seq.root.resolve(), fmt=seq.format_name, calib=absolute(calib), image_topic=image_topic,
-                      cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt),
-                      onnx=absolute(onnx), method=method,
-                      start=start, end=end, provider=provider, threads=sc.engine_threads,  # the count used
-                      backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
-                      optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline,
-                      classical_beside=classical_beside)
-        _write_config(folder, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
-                      seq, plan)
-        if fresh:
-            from d3lvo_deploy.results import link_latest
+        folder.create()
+    _write_config(record_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
+                  seq, plan)
+    if folder is not None and fresh:
+        from d3lvo_deploy.results import link_latest
 
-            link_latest(folder.path)
+        link_latest(folder.path)
     if plan.finished:
         console.print(f"{out_path} already holds all {plan.n} poses of frames {plan.rc.start}..{plan.rc.end - 1}: "
                       "nothing to run (--overwrite starts over)", highlight=False)
@@ -320,19 +356,39 @@ def _name(seq) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "run"
 
 
-def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, plan=None) -> None:
+def _run_tables(record: dict, model_dir: Path) -> dict[str, dict]:
+    """The [run] and [model] tables of a run's config, as written and as --resume compares them."""
+    from d3lvo_deploy.manifest import sha256_file
+
+    return {"run": {k: (str(v) if isinstance(v, Path) else v) for k, v in record.items()},
+            "model": {"dir": str(model_dir.resolve()), "manifest_sha256": sha256_file(model_dir / "manifest.json")}}
+
+
+def _check_resume(record_path: Path, out_path: Path, record: dict, model_dir: Path) -> None:
+    """Poses already in the output belong to the run this command repeats, or --resume stops here."""
+    from d3lvo_deploy.results import check_resume
+
+    if not out_path.is_file() or out_path.stat().st_size == 0:
+        return
+    if record_path.is_file():
+        check_resume(record_path, _run_tables(record, model_dir), out_path)
+    else:
+        console.print(f"[yellow]warning[/] {record_path}: missing, so nothing shows that the poses in {out_path} "
+                      "are of this recording, frames and model; they are continued as if they were", highlight=False)
+
+
+def _write_config(path: Path, record: dict, model_dir: Path, engine_name: str, seq, plan=None) -> None:
+    """The run's config.toml (a results folder's, or the one beside an --out trajectory)."""
+    import os
     import platform
 
     from d3lvo_deploy import __version__
     from d3lvo_deploy.cpu import cpu_info
-    from d3lvo_deploy.manifest import sha256_file
-    from d3lvo_deploy.results import CONFIG, to_toml
+    from d3lvo_deploy.results import to_toml
 
-    folder.create()
     cpu = cpu_info()
     tables = {
-        "run": {k: (str(v) if isinstance(v, Path) else v) for k, v in record.items()},
-        "model": {"dir": str(model_dir.resolve()), "manifest_sha256": sha256_file(model_dir / "manifest.json")},
+        **_run_tables(record, model_dir),
         "machine": {"engine": engine_name, "engine_version": _engine_version(engine_name), "cpu": cpu.line(),
                     "python": platform.python_version(), "d3lvo_deploy": __version__},
         "recording": {"frames": len(seq), "pose_frame": seq.frame_label},
@@ -342,8 +398,13 @@ def _write_config(folder, record: dict, model_dir: Path, engine_name: str, seq, 
         stages = [s for s in ("completion", "encoder", "classical") if s in model.sessions] + ["flowpose"]
         tables["machine"].update(pipeline_depth=plan.depth, **{f"{s}_threads": model.threads(s) for s in stages},
                                  prepare_threads=plan.sc.preparing_threads, classical_beside=model.beside)
-    folder.write_text(CONFIG, "# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
-                      + to_toml(tables))
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text("# d3lvo run --config THIS_FILE repeats the run: the [run] table holds its options\n"
+                       + to_toml(tables))
+        os.replace(tmp, path)
+    except OSError as e:
+        raise D3LVOInputError(path, f"cannot write the run's config ({e.strerror})") from None
 
 
 def _engine_version(engine_name: str) -> str:
@@ -390,13 +451,26 @@ def _asked(folder) -> str:
     return (", " + ", ".join(extra)) if extra else ""
 
 
+SCAN_WARNINGS_SHOWN = 5  # of a run's per-frame scan warnings; the rest are counted
+
+
 def _print_warnings(caught) -> None:
-    seen = set()
+    from d3lvo_deploy.odometry import ScanWarning
+
+    seen, scans = set(), 0
     for w in caught:
         msg = str(w.message)
-        if msg not in seen:
-            seen.add(msg)
-            console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
+        if msg in seen:
+            continue
+        seen.add(msg)
+        if issubclass(w.category, ScanWarning):
+            scans += 1
+            if scans > SCAN_WARNINGS_SHOWN:
+                continue
+        console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
+    if scans > SCAN_WARNINGS_SHOWN:
+        console.print(f"[yellow]warning[/] {scans - SCAN_WARNINGS_SHOWN} more frames' scans had the same kind of "
+                      "problem", highlight=False)
 
 
 def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend) -> None:

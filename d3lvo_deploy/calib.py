@@ -7,6 +7,7 @@ one orientation, so cam0 -> cam2 is a pure translation b = inv(K2) @ P2[:, 3].
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ class Calib:
     P2: np.ndarray  # (3,4) projection of rectified cam0 coordinates into image_2
     Tr: np.ndarray  # (4,4) velodyne -> rectified cam0
     P0: np.ndarray | None = None
+    keys: tuple[str, str] = ("P2", "Tr")  # the file's entries they came from (K and T_cam_lidar: a plain camera's)
 
     @property
     def K2(self) -> np.ndarray:
@@ -81,15 +83,20 @@ def parse_calib(path: str | Path) -> Calib:
         except ValueError:
             raise D3LVOInputError(path, f"line {lineno} ({key.strip()}) is not numeric") from None
 
-    if "P2" not in entries and len(entries.get("K", [])) == 9:
-        entries["P2"] = list(np.hstack([np.asarray(entries["K"]).reshape(3, 3), np.zeros((3, 1))]).reshape(-1))
-    if "P2" not in entries:
+    cam_key = "P2" if "P2" in entries else "K" if "K" in entries else None
+    if cam_key is None:
         raise D3LVOInputError(path, "no P2 (image_2 projection) or K (camera matrix) entry")
+    if cam_key == "K":
+        if len(entries["K"]) != 9:
+            raise D3LVOInputError(path, f"K has {len(entries['K'])} numbers, expected 9 (3x3)")
+        entries["P2"] = list(np.hstack([np.asarray(entries["K"]).reshape(3, 3), np.zeros((3, 1))]).reshape(-1))
     if len(entries["P2"]) != 12:
         raise D3LVOInputError(path, f"P2 has {len(entries['P2'])} numbers, expected 12")
     P2 = np.asarray(entries["P2"]).reshape(3, 4)
+    if not (P2[0, 0] > 0 and P2[1, 1] > 0):
+        raise D3LVOInputError(path, f"{cam_key}'s focal lengths must be positive (fx {P2[0, 0]:g}, fy {P2[1, 1]:g})")
     if abs(np.linalg.det(P2[:, :3])) < 1e-9:
-        raise D3LVOInputError(path, "P2's left 3x3 block is singular")
+        raise D3LVOInputError(path, f"{cam_key}'s left 3x3 block is singular")
 
     tr_key = next((k for k in ("Tr", "Tr_velo_to_cam", "Tr_velo_cam", "T_cam_lidar") if k in entries), None)
     if tr_key is None:
@@ -105,4 +112,37 @@ def parse_calib(path: str | Path) -> Calib:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
         raise D3LVOInputError(path, f"{tr_key}'s rotation block is not orthonormal")
     P0 = np.asarray(entries["P0"]).reshape(3, 4) if len(entries.get("P0", [])) == 12 else None
-    return Calib(P2=P2, Tr=Tr, P0=P0)
+    return Calib(P2=P2, Tr=Tr, P0=P0, keys=(cam_key, tr_key))
+
+
+# below this share of a scan's returns in the image, a warning: a forward camera with a 360-degree
+# LiDAR (KITTI's rig, the synthetic drives) sees a good part of every scan (tests/test_calib.py)
+FEW_IN_VIEW = 0.02
+
+
+def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: str | Path, frame: str) -> None:
+    """The calibration against one frame's image size and scan, before a run: a principal point
+    outside the image (images of another size), or a scan of which no return lands in the image
+    (the LiDAR extrinsic of another rig), is an error; a principal point far from the centre or
+    few returns in view a warning. Either would otherwise run to a wrong trajectory without a word."""
+    from .projection import PROJECTION_MIN_DEPTH, project_points
+
+    cx, cy = calib.P2[0, 2] / calib.P2[2, 2], calib.P2[1, 2] / calib.P2[2, 2]
+    size = f"{width}x{height}"
+    if not (0 <= cx < width and 0 <= cy < height):
+        raise D3LVOInputError(where, f"the calibration's principal point ({cx:.1f}, {cy:.1f}) lies outside frame "
+                                     f"{frame}'s {size} image: the calibration is for images of another size")
+    if not (0.1 <= cx / width <= 0.9 and 0.1 <= cy / height <= 0.9):
+        warnings.warn(f"{where}: the calibration's principal point ({cx:.1f}, {cy:.1f}) is far from the centre of "
+                      f"frame {frame}'s {size} image: is the calibration for images of another size?", stacklevel=2)
+    pts = np.asarray(scan)[:, :3]
+    pts = pts[np.isfinite(pts).all(1)]
+    if len(pts) < 1000:  # an empty or sparse scan: its own warning, and too few to judge by
+        return
+    seen = len(project_points(pts, calib.P_velo_to_image2, width, height, PROJECTION_MIN_DEPTH)[2])
+    if seen == 0:
+        raise D3LVOInputError(where, f"none of the {len(pts)} LiDAR returns of frame {frame} lands in its {size} "
+                                     "image: the calibration's LiDAR-to-camera transform does not fit this recording")
+    if seen < FEW_IN_VIEW * len(pts):
+        warnings.warn(f"{where}: only {seen} of the {len(pts)} LiDAR returns of frame {frame} ({seen / len(pts):.1%}) "
+                      f"land in its {size} image: does the calibration fit this recording?", stacklevel=2)

@@ -309,6 +309,7 @@ class DirectOdometry:
         self.reset()
 
     needs_scan = True
+    scan_source = "scan"  # what a scan warning names (`d3lvo run` sets the frame)
 
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         self._prev: TrackedFrame | None = None
@@ -324,7 +325,7 @@ class DirectOdometry:
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         P, (h, w) = self.calib.P_velo_to_image2, grey.shape
-        scan = rows_in_view(clean_scan(points), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
+        scan = rows_in_view(clean_scan(points, self.scan_source), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
         depth = sparse_depth(scan, P, w, h) if self.cfg.checks_restart_on_scan else None

@@ -92,6 +92,8 @@ class FrameTiming:
 class Odometry:
     """Minimal robot-facing API. `calib` is a Calib or a path to a KITTI calib file."""
 
+    scan_source = "scan"  # what a scan warning names (`d3lvo run` sets the frame)
+
     def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
                  model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
         self.cold_start = cold_start
@@ -170,7 +172,7 @@ class Odometry:
     def _prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int) -> "PreparedFrame":
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
-        scan = clean_scan(points) if self.model.depth_input != "none" else None  # checked before any job starts
+        scan = clean_scan(points, self.scan_source) if self.model.depth_input != "none" else None  # checked before any job starts
         # the solver's finest level (the camera's grey image and its gradients) needs no scan: it
         # starts at once, beside the scan's cull
         finest = self._beside(functools.partial(finest_level, image), threads) if self.model.point_solver else None

@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from .calib import check_fit
 from .errors import D3LVOInputError
 from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
@@ -201,6 +202,8 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
+    image = seq.image(rc.start)
+    check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(rc.start), seq.root, seq.frame_names[rc.start])
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
     opens = odometry is None and model is None  # this run opens the network's sessions, split as it pipelines
     backend = model.backend if model is not None else sc.resolved().backend
@@ -262,6 +265,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         if len(done):
             k = rc.start + len(done) - 1
             extra = {} if saved is None else {"start": saved[-1]}
+            odo.scan_source = f"frame {seq.frame_names[k]}'s scan"
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
                       done[-2] if len(done) >= 2 else None, **extra)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
@@ -280,6 +284,9 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 if wait > 0:
                     time.sleep(wait)
             t0 = time.perf_counter()
+            # set before the frame's scan is checked, here or by `step` (in a pipeline the reader
+            # prepares each frame after the first, which the main thread steps before reading ahead)
+            odo.scan_source = f"frame {seq.frame_names[i]}'s scan"
             try:  # a bad file, or a frame unlike the others (its size)
                 image = seq.image(i)
                 points = seq.scan(i) if odo.needs_scan else None

@@ -120,6 +120,41 @@ def read_config(path: str | Path) -> dict:
     return run
 
 
+# the [run] options that decide which frame each pose belongs to and how it was estimated: a
+# resumed run appends to the poses of an earlier one only where it agrees on each (the end may
+# grow; threads and engine change no pose beyond rounding)
+RESUME_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "method", "start")
+
+
+def record_file(out: str | Path) -> Path:
+    """Beside a trajectory written with `d3lvo run --out`: its run's config (the [run] and [model]
+    tables of a results folder's config.toml), which --resume checks and --config repeats."""
+    out = Path(out)
+    return out.with_name(out.name + ".config.toml")
+
+
+def check_resume(record: Path, current: dict[str, dict], poses: Path) -> None:
+    """--resume would append this run's poses (`current`: its [run] and [model] tables as written)
+    to those in `poses` of the run `record` holds: one error naming what differs, before any pose is added,
+    rather than one file holding two recordings' frames."""
+    old = read_toml(record, "run record")
+    if not isinstance(old.get("run"), dict):
+        raise D3LVOInputError(record, "has no [run] table (d3lvo run writes one)")
+    pairs = [(f"{k}", old["run"].get(k), current["run"].get(k)) for k in RESUME_KEYS]
+    pairs.append(("model", old.get("model", {}).get("manifest_sha256"), current["model"].get("manifest_sha256")))
+    for key, was, now in pairs:
+        was, now = (None if v is None else str(v) if isinstance(v, Path) else v for v in (was, now))
+        if was != now:
+            what = "model (manifest sha256)" if key == "model" else key
+            raise D3LVOInputError(record, f"the poses in {poses} are of a run with {what} = {_shown(was, key)}, this one "
+                                          f"has {_shown(now, key)}: --resume continues the same run only (write this one "
+                                          "elsewhere, or --overwrite to start over)")
+
+
+def _shown(v, key: str) -> str:
+    return "none" if v is None else f"{v[:12]}..." if key == "model" else repr(v)
+
+
 @dataclass
 class ResultsFolder:
     path: Path

@@ -204,9 +204,14 @@ def parse_sequences(spec: str) -> list[str]:
         for part in spec.split(","):
             if "-" in part:
                 a, b = part.split("-")
+                if int(b) < int(a):
+                    raise D3LVOInputError(None, f"--sequences {spec!r}: the range {part.strip()} runs backwards "
+                                                f"(write {b.strip()}-{a.strip()})")
                 out += [f"{i:02d}" for i in range(int(a), int(b) + 1)]
             elif part.strip():
                 out.append(f"{int(part):02d}")
     except ValueError:
         raise D3LVOInputError(None, f"--sequences must look like 00-10 or 00,02,05, not {spec!r}") from None
+    if not out:
+        raise D3LVOInputError(None, f"--sequences {spec!r} names no sequence")
     return out

@@ -1,10 +1,13 @@
 """Calibration parsing (odometry, object-benchmark and 4x4 variants) and the cam0/cam2 convention."""
 
+import re
+import warnings
+
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import ROOT, SHARED, shared_path
 
-from d3lvo_deploy.calib import parse_calib
+from d3lvo_deploy.calib import Calib, check_fit, parse_calib
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import axis_angle_to_rot, change_frame, make_se3, relatives
 
@@ -71,3 +74,62 @@ def test_cam2_motion_maps_back_to_cam0_ground_truth():
     np.testing.assert_allclose(rel0, relatives(poses0), atol=1e-12)
     # and the difference is real: with a yaw, cam2's own motion has a different translation
     assert np.abs(rel2[:, :3, 3] - relatives(poses0)[:, :3, 3]).max() > 1e-3
+
+
+@pytest.mark.parametrize("text, words", [
+    ("K: 1 2 3 4 5 6 7 8\n", "K has 8 numbers, expected 9 (3x3)"),
+    ("K: 0 0 300 0 700 90 0 0 1\n", "K's focal lengths must be positive (fx 0, fy 700)"),
+    ("P2: 700 0 300 0 0 -700 90 0 0 0 1 0\n", "P2's focal lengths must be positive (fx 700, fy -700)"),
+])
+def test_a_camera_matrix_that_cannot_project_is_named(tmp_path, text, words):
+    f = tmp_path / "calib.txt"
+    f.write_text(text + "T_cam_lidar: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(D3LVOInputError, match=re.escape(words)):
+        parse_calib(f)
+
+
+def _fit_warnings(calib, image, scan):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_fit(calib, image.shape[1], image.shape[0], scan, "rec", "000000")
+    return [str(w.message) for w in caught]
+
+
+def test_a_calibration_that_fits_raises_nothing(small_synth):
+    from d3lvo_deploy.sequence import KittiSequence
+
+    seqs = [KittiSequence.open(small_synth), KittiSequence.open(ROOT / "tests" / "data" / "tiny_seq")]
+    real = SHARED / "kitti_raw_snippet" / "sequences" / "r0926"
+    seqs += [KittiSequence.open(real)] if real.is_dir() else []
+    for seq in seqs:
+        assert _fit_warnings(seq.calib, seq.image(0), seq.scan(0)) == [], seq.root
+
+
+def test_a_calibration_for_another_image_or_rig_is_caught(small_synth):
+    """The synthetic drive's own calibration (principal point near 304, 87 for 620x188 images) and
+    360-degree scan: images resized to half their size keep the principal point inside, at 98 % and
+    92 % (a warning), and only returns on the top left of the view land in them (under 2 %, a
+    warning); a 150x40 image leaves it outside (an error). A LiDAR extrinsic that looks up
+    (identity: the LiDAR's z, up, as the camera's forward axis) puts no return of a scan ahead of
+    and below the sensor in the image (an error)."""
+    from d3lvo_deploy.sequence import KittiSequence
+
+    seq = KittiSequence.open(small_synth)
+    c, scan = seq.calib, seq.scan(0)
+    pp = f"({c.P2[0, 2]:.1f}, {c.P2[1, 2]:.1f})"
+    assert pp.startswith("(304.") and (", 86." in pp or ", 87." in pp)
+    half = _fit_warnings(c, np.zeros((94, 310, 3), np.uint8), scan)
+    assert len(half) == 2 and f"{pp} is far from the centre of frame 000000's 310x94 image" in half[0], half
+    assert "LiDAR returns of frame 000000" in half[1] and "land in its 310x94 image" in half[1], half
+    with pytest.raises(D3LVOInputError, match=re.escape(f"{pp} lies outside frame 000000's 150x40 image")):
+        check_fit(c, 150, 40, scan, "rec", "000000")
+    rng = np.random.default_rng(0)
+    # 5,000 returns 5-40 m ahead of the LiDAR (x forward), up to 15 m to either side, below it
+    ahead = np.stack([rng.uniform(5, 40, 5000), rng.uniform(-15, 15, 5000), rng.uniform(-1.7, -0.2, 5000),
+                      np.ones(5000)], 1).astype(np.float32)
+    assert _fit_warnings(c, seq.image(0), ahead) == []
+    up = Calib(P2=c.P2, Tr=np.eye(4))
+    with pytest.raises(D3LVOInputError, match="none of the 5000 LiDAR returns of frame 000000 lands in its 620x188"):
+        check_fit(up, 620, 188, ahead, "rec", "000000")
+    # an empty or sparse scan is not judged (its own warning says it is empty)
+    assert _fit_warnings(up, seq.image(0), ahead[:999]) == []

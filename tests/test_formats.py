@@ -161,7 +161,7 @@ def test_folder_poses_are_in_the_calibrated_camera(tmp_path):
     folder = write_scan_folder(seq, tmp_path / "f", ".npy")
     run(str(TINY), "--out", str(tmp_path / "kitti.txt"))
     text = run(str(folder), "--out", str(tmp_path / "cam.txt"))
-    assert "cam0 (the frame of the calibration's P2 and Tr)" in text
+    assert "the camera of the calibration's K (T_cam_lidar takes the LiDAR there)" in text
     P2 = np.array([float(v) for v in (TINY / "calib.txt").read_text().split("P2:")[1].split("\n")[0].split()]).reshape(3, 4)
     S = np.eye(4)
     S[:3, 3] = np.linalg.solve(P2[:, :3], P2[:, 3])  # x_cam2 = x_cam0 + b
@@ -300,3 +300,99 @@ def test_runs_started_together_get_their_own_folders_and_a_refused_run_none(tmp_
     r = runner.invoke(app, ["run", str(TINY), "--onnx", str(tmp_path / "nowhere")])
     assert r.exit_code == 1
     assert sorted(p.name for p in (tmp_path / "results").iterdir()) == sorted([a.name, b.name])  # none added
+
+
+def test_resume_continues_only_the_run_its_config_records(tmp_path, monkeypatch):
+    """--resume appends to the poses of the same recording, start and model only: another
+    recording or start is one error naming the option and both values, and nothing is added; the
+    config written beside an --out trajectory is what it checks, and what --config repeats."""
+    monkeypatch.chdir(tmp_path)
+    other = tmp_path / "other"
+    shutil.copytree(TINY, other)
+    out = tmp_path / "res"
+    run(str(TINY), "--out-dir", str(out), "--end", "2")
+    saved = [(out / n).read_bytes() for n in ("poses.txt", "config.toml")]
+    r = runner.invoke(app, ["run", str(other), "--out-dir", str(out), "--resume", "--backend", "onnxruntime"])
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    for words in (f"the poses in {out / 'poses.txt'} are of a run with path = '{TINY.resolve()}'",
+                  f"this one has '{other.resolve()}'", "--overwrite"):
+        assert words in r.output, r.output
+    assert [(out / n).read_bytes() for n in ("poses.txt", "config.toml")] == saved
+
+    p = tmp_path / "p.txt"
+    run(str(TINY), "--out", str(p), "--end", "2")
+    record = tmp_path / "p.txt.config.toml"
+    assert tomllib.loads(record.read_text())["run"]["end"] == 2
+    r = runner.invoke(app, ["run", str(TINY), "--out", str(p), "--resume", "--start", "1", "--backend", "onnxruntime"])
+    assert r.exit_code == 1 and "are of a run with start = 0, this one has 1" in r.output, r.output
+    assert len(p.read_text().splitlines()) == 2
+    run(str(TINY), "--out", str(p), "--resume")
+    r = runner.invoke(app, ["run", "--config", str(record), "--out", str(tmp_path / "q.txt")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "q.txt").read_bytes() == p.read_bytes() and len(p.read_text().splitlines()) == 3
+    record.unlink()
+    r = runner.invoke(app, ["run", str(TINY), "--out", str(p), "--resume", "--backend", "onnxruntime"])
+    assert r.exit_code == 0 and "missing, so nothing shows that the poses in" in r.output, r.output
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--out", "p.txt", "--out-dir", "d"], "--out writes one trajectory file and --out-dir a results folder"),
+    (["--out", "p.txt", "--resume", "--overwrite"], "--resume continues the poses already written and --overwrite"),
+    (["--out", "p.txt", "--gt", "nowhere.txt"], "nowhere.txt: pose file not found"),
+    (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data" / "tiny_seq" / "times.txt")],
+     "1 columns per line: expected 12 (KITTI)"),
+])
+def test_options_that_cannot_work_together_or_score_stop_before_any_frame(tmp_path, monkeypatch, extra, words):
+    monkeypatch.chdir(tmp_path)
+    r = runner.invoke(app, ["run", str(TINY), "--backend", "onnxruntime", *extra])
+    assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, r.output
+    assert list(tmp_path.iterdir()) == []  # no trajectory, no folder
+
+
+def test_ground_truth_of_another_length_stops_before_the_first_frame(tmp_path):
+    gt = tmp_path / "gt.txt"
+    gt.write_text("".join(" ".join(["1 0 0 0 0 1 0 0 0 0 1 0"]) + "\n" for _ in range(5)))
+    r = runner.invoke(app, ["run", str(TINY), "--gt", str(gt), "--out", str(tmp_path / "p.txt")])
+    assert r.exit_code == 1 and "5 poses for a sequence of 3 frames" in r.output, r.output
+    assert not (tmp_path / "p.txt").exists()
+
+
+@pytest.mark.parametrize("line, words", [('threads = "two"', "[run] threads = 'two': expected a whole number"),
+                                         ("start = 1.5", "[run] start = 1.5: expected a whole number"),
+                                         ("path = 3", "[run] path = 3: expected a quoted string (a path)"),
+                                         ('pipeline = "yes"', "[run] pipeline = 'yes': expected true or false")])
+def test_a_config_value_of_the_wrong_type_names_its_key(tmp_path, line, words):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"[run]\n{line}\n" if line.startswith("path") else f'[run]\npath = "{TINY}"\n{line}\n')
+    r = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "p.txt")])
+    assert r.exit_code == 1 and words in r.output and str(cfg) in r.output and "Traceback" not in r.output, r.output
+
+
+def test_empty_kitti_folders_say_what_is_missing(tmp_path):
+    for d in ("image_2", "velodyne"):
+        (tmp_path / "s" / d).mkdir(parents=True)
+    r = runner.invoke(app, ["run", str(tmp_path / "s")])
+    assert r.exit_code == 1 and "image_2: holds no .png images" in r.output, r.output
+
+
+def test_scan_warnings_name_their_frame(tmp_path):
+    from cli.run_cmd import SCAN_WARNINGS_SHOWN, _print_warnings
+    from d3lvo_deploy.odometry import ScanWarning
+
+    shutil.copytree(TINY, tmp_path / "s")
+    (tmp_path / "s" / "velodyne" / "000001.bin").write_bytes(b"")
+    r = runner.invoke(app, ["run", str(tmp_path / "s"), "--out", str(tmp_path / "p.txt"), "--backend", "onnxruntime"])
+    assert r.exit_code == 0 and "frame 000001's scan: no LiDAR points" in r.output, r.output
+    assert len((tmp_path / "p.txt").read_text().splitlines()) == 3
+
+    class W:  # what warnings.catch_warnings records
+        def __init__(self, k):
+            self.message, self.category = f"frame {k:06d}'s scan: no LiDAR points", ScanWarning
+
+    from cli.common import console
+
+    with console.capture() as cap:
+        _print_warnings([W(k) for k in range(SCAN_WARNINGS_SHOWN + 2)])
+    lines = cap.get().splitlines()
+    assert len(lines) == SCAN_WARNINGS_SHOWN + 1 and lines[0].endswith("frame 000000's scan: no LiDAR points")
+    assert "2 more frames' scans had the same kind of problem" in lines[-1]

@@ -1,5 +1,6 @@
 """Many sequences on workers: chunking, stitching, and equality with the sequential run."""
 
+import re
 import shutil
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3
 from d3lvo_deploy.pipeline import RunConfig, run_sequence
 from d3lvo_deploy.poses import read_poses
@@ -22,6 +24,13 @@ def test_plan_chunks_by_hand():
     assert plan_chunks(4, 4, 1) == [(0, 4)]
     assert plan_chunks(11, 5, 2) == [(0, 5), (3, 8), (6, 11)]
     assert parse_sequences("00-02,05") == ["00", "01", "02", "05"]
+
+
+@pytest.mark.parametrize("spec, words", [("10-00", "runs backwards (write 00-10)"), (",", "names no sequence"),
+                                         ("0a", "must look like 00-10")])
+def test_a_sequence_list_that_names_nothing_is_refused(spec, words):
+    with pytest.raises(D3LVOInputError, match=re.escape(words)):
+        parse_sequences(spec)
 
 
 def test_stitch_recovers_a_trajectory():

@@ -40,6 +40,8 @@ def guess_format(path: str | Path) -> str:
             return "kitti-raw"
         if is_folder(path):
             return "folder"
+        if (path / "image_2").is_dir() and (path / "velodyne").is_dir():
+            return "kitti"  # without frames: KittiSequence says what is missing
     raise D3LVOInputError(path, "is none of the formats D3LVO reads: a KITTI odometry sequence (image_2/, "
                                 "velodyne/), a KITTI raw drive (image_02/data/, velodyne_points/data/), a ROS bag "
                                 "(.bag, .mcap, .db3, or a folder with metadata.yaml), or a folder of images/ and "

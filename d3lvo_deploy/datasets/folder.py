@@ -135,7 +135,8 @@ class FolderSequence(SensorSequence):
             calib = next((root / n for n in CALIB_NAMES if (root / n).is_file()), root / "calib.txt")
         cal = parse_calib(calib)
         times = _read_times(root / "times.txt", len(names))
-        label = "cam0 (the frame of the calibration's P2 and Tr)"
+        label = (f"the camera of the calibration's K ({cal.keys[1]} takes the LiDAR there)" if cal.keys[0] == "K"
+                 else f"cam0 (the frame of the calibration's {cal.keys[0]} and {cal.keys[1]})")
         seq = cls(root=root, calib=cal, frame_names=names, times=times, frame_label=label, image_files=img_files,
                   scan_files=[by_stem[n] for n in names])
         gt = gt if gt is not None else (root / "poses.txt" if (root / "poses.txt").is_file() else None)
