@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import typer
 
 from .bench_cmd import bench_command
@@ -42,14 +44,27 @@ def root(version: bool = typer.Option(False, "--version", callback=_version, is_
     """
 
 
-app.command("demo")(demo_command)
-app.command("synth")(synth_command)
-app.command("train")(train_command)
-app.command("export")(export_command)
-app.command("parity")(parity_command)
-app.command("run")(run_command)
-app.command("eval")(eval_command)
-app.command("bench")(bench_command)
+def one_line_paragraphs(doc: str) -> str:
+    """Typer's rich help keeps a docstring's line breaks, which then wrap raggedly in a narrow
+    terminal: each paragraph on one line for rich to wrap (an `Example:` line stays its own)."""
+    paragraphs = []
+    for paragraph in inspect.cleandoc(doc).split("\n\n"):
+        lines: list[str] = []
+        for line in paragraph.splitlines():
+            if lines and not line.startswith("Example:"):
+                lines[-1] += " " + line.strip()
+            else:
+                lines.append(line.strip())
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
+
+
+root.__doc__ = one_line_paragraphs(root.__doc__)
+for name, command in (("demo", demo_command), ("synth", synth_command), ("train", train_command),
+                      ("export", export_command), ("parity", parity_command), ("run", run_command),
+                      ("eval", eval_command), ("bench", bench_command)):
+    command.__doc__ = one_line_paragraphs(command.__doc__)
+    app.command(name)(command)
 
 
 def main() -> None:

@@ -226,6 +226,9 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
     if out_path is not None and out_dir is not None:
         raise D3LVOInputError(None, "--out writes one trajectory file and --out-dir a results folder: name one of them")
+    if out_path is None and pose_fmt.lower() != "kitti" and sequences is None:
+        raise D3LVOInputError(None, f"--pose-format {pose_fmt} is for --out FILE; a results folder holds both "
+                                    "poses.txt (KITTI) and poses_tum.txt (TUM)")
     if resume and overwrite:
         raise D3LVOInputError(None, "--resume continues the poses already written and --overwrite starts over: "
                                     "name one of them")
@@ -480,12 +483,13 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     from d3lvo_deploy.backends import SessionConfig
 
     from d3lvo_deploy.evaluation import evaluate_files
-    from d3lvo_deploy.scaleout import parse_sequences, run_many
+    from d3lvo_deploy.scaleout import check_engine, parse_sequences, run_many
 
     from .eval_cmd import report_table
 
     if kitti_root is None or out_dir is None:
         raise D3LVOInputError(None, "--sequences needs --kitti-root R and --out-dir OUT")
+    check_engine(engine, workers)
     names = parse_sequences(spec)
     dirs = {n: kitti_root / "sequences" / n for n in names}
     for n, d in dirs.items():

@@ -58,6 +58,8 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
             raise D3LVOInputError(model_dir, "is one ONNX file; pass the folder written by `d3lvo export` "
                                              "(its manifest.json lists the stages)")
         raise D3LVOInputError(model_dir, "is a file; pass the folder written by `d3lvo export`")
+    if not model_dir.exists():
+        raise D3LVOInputError(model_dir, "model folder not found")
     if not path.is_file():
         raise D3LVOInputError(model_dir, "no manifest.json: not a folder written by `d3lvo export`")
     try:

@@ -202,6 +202,9 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
+    if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
+        warnings.warn(f"{rc.viz_dir}: --viz draws every {rc.viz_every}th frame after the first, and this run has "
+                      f"{n} frames: no picture (a smaller --viz-every draws more)")
     image = seq.image(rc.start)
     check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(rc.start), seq.root, seq.frame_names[rc.start])
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))

@@ -154,15 +154,20 @@ def _ray(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.nd
             ray.shutdown()
 
 
+def check_engine(engine: str, workers: int) -> None:
+    """--engine and --workers, before anything (a progress bar) starts."""
+    if engine not in ENGINES:
+        raise D3LVOInputError(None, f"--engine must be one of {', '.join(ENGINES)}, not {engine!r}")
+    if workers < 1:
+        raise D3LVOInputError(None, "--workers must be at least 1")
+
+
 def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, engine: str = "local", workers: int = 2,
              chunk: int = 1000, overlap: int = 2, address: str | None = None, sc: SessionConfig | None = None,
              on_chunk: Callable[[Chunk], None] | None = None,
              on_sequence: Callable[[str, Path, float], None] | None = None) -> dict[str, float]:
     """Run every sequence; returns {sequence: overlap residual (m)}. Trajectories go to out_dir/NAME.txt."""
-    if engine not in ENGINES:
-        raise D3LVOInputError(None, f"--engine must be one of {', '.join(ENGINES)}, not {engine!r}")
-    if workers < 1:
-        raise D3LVOInputError(None, "--workers must be at least 1")
+    check_engine(engine, workers)
     model_dir = str(Path(model_dir).resolve())
     StageModel(model_dir)  # verify the model once, here, before fanning out
     sc = sc or SessionConfig()

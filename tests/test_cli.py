@@ -142,3 +142,13 @@ def test_top_level_help_lists_the_commands_in_workflow_order():
     listed = [line.split()[1] for line in r.output.splitlines() if line.startswith("│ ") and len(line.split()) > 1
               and line.split()[1] in order]
     assert listed == order, r.output
+
+
+def test_help_paragraphs_wrap_at_the_terminal_width():
+    from cli.main import one_line_paragraphs
+
+    assert one_line_paragraphs("First\n    line.\n\n    More\n    text.\n    Example: d3lvo x\n") == \
+        "First line.\n\nMore text.\nExample: d3lvo x"
+    r = runner.invoke(app, ["--help"], terminal_width=80)
+    # the docstring breaks "synth" and "(KITTI-format" apart; rich, wrapping the paragraph, does not
+    assert "synth (KITTI-format synthetic drives)" in r.output, r.output

@@ -109,7 +109,9 @@ def test_export_converts_only_an_fp32_folder_as_exported(small_model, tmp_path):
              (["--onnx", str(fp32_dir), "--out", str(tmp_path / "c"), "--precision", "fp16", "--opset", "17"],
               "--opset needs --ckpt"),
              (["--onnx", str(fp32_dir), "--out", str(fp32_dir), "--precision", "fp16"], "the --onnx folder itself"),
-             (["--onnx", str(tmp_path / "none"), "--out", str(tmp_path / "d"), "--precision", "fp16"], "no manifest.json"),
+             (["--onnx", str(tmp_path / "none"), "--out", str(tmp_path / "d"), "--precision", "fp16"],
+              "model folder not found"),
+             (["--onnx", str(tmp_path), "--out", str(tmp_path / "d"), "--precision", "fp16"], "no manifest.json"),
              (["--out", str(tmp_path / "e"), "--precision", "fp16"], "either --ckpt"),
              (["--ckpt", str(ck), "--onnx", str(fp32_dir), "--out", str(tmp_path / "f")], "either --ckpt")]
     before = {f.name: f.read_bytes() for f in fp32_dir.iterdir() if f.is_file()}

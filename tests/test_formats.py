@@ -338,6 +338,9 @@ def test_resume_continues_only_the_run_its_config_records(tmp_path, monkeypatch)
 @pytest.mark.parametrize("extra, words", [
     (["--out", "p.txt", "--out-dir", "d"], "--out writes one trajectory file and --out-dir a results folder"),
     (["--out", "p.txt", "--resume", "--overwrite"], "--resume continues the poses already written and --overwrite"),
+    (["--pose-format", "tum"], "--pose-format tum is for --out FILE; a results folder holds both"),
+    (["--out", "p.txt", "--image-topic", "/cam", "--max-dt", "0.1"],
+     "--image-topic, --max-dt are for ROS bags; this is a kitti recording"),
     (["--out", "p.txt", "--gt", "nowhere.txt"], "nowhere.txt: pose file not found"),
     (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data" / "tiny_seq" / "times.txt")],
      "1 columns per line: expected 12 (KITTI)"),
@@ -396,3 +399,11 @@ def test_scan_warnings_name_their_frame(tmp_path):
     lines = cap.get().splitlines()
     assert len(lines) == SCAN_WARNINGS_SHOWN + 1 and lines[0].endswith("frame 000000's scan: no LiDAR points")
     assert "2 more frames' scans had the same kind of problem" in lines[-1]
+
+
+def test_a_scan_that_is_not_npy_names_the_file(tmp_path):
+    folder = write_scan_folder(KittiSequence.open(TINY), tmp_path / "f", ".npy")
+    bad = sorted((folder / "scans").glob("*.npy"))[1]
+    bad.write_bytes(b"garbage")
+    r = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "p.txt"), "--backend", "onnxruntime"])
+    assert r.exit_code == 1 and f"{bad.name}: is not a .npy file (no NumPy header" in r.output, r.output

@@ -417,6 +417,11 @@ def test_viz_writes_a_panel_per_chosen_frame(small_model, small_synth, tmp_path)
                             "--viz", str(tmp_path / "viz"), "--viz-every", "2"])
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in (tmp_path / "viz").iterdir()) == ["000002.png", "000004.png"]
+    assert "no picture" not in r.output
+    # six frames and the default --viz-every 10: pictures of frames 10, 20, ..., so none, and it says so
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
+                            "--viz", str(tmp_path / "none")])
+    assert r.exit_code == 0 and "this run has 6 frames: no picture" in r.output, r.output
     img = cv2.imread(str(tmp_path / "viz" / "000002.png"))
     h, w = 64, 224  # the test model's network view
     assert img.shape == (5 * (h + BAR), w, 3)  # camera, LiDAR, completion, flow, confidence

@@ -119,3 +119,11 @@ def test_cli_many_sequences_with_eval(kitti_root, small_model, tmp_path):
     r = runner.invoke(app, ["run", "--kitti-root", str(kitti_root), "--sequences", "00-03", "--out-dir", str(tmp_path / "o"),
                             "--onnx", str(onnx_dir)])
     assert r.exit_code == 1 and "sequence 02 not found" in r.output
+
+
+@pytest.mark.parametrize("extra, words", [(["--engine", "foo"], "--engine must be one of sequential, local, ray"),
+                                          (["--workers", "0"], "--workers must be at least 1")])
+def test_engine_and_workers_are_checked_before_the_progress_bar(tmp_path, extra, words):
+    r = runner.invoke(app, ["run", "--kitti-root", str(tmp_path), "--sequences", "00", "--out-dir",
+                            str(tmp_path / "o"), *extra])
+    assert r.exit_code == 1 and words in r.output and "chunks" not in r.output, r.output

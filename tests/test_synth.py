@@ -160,8 +160,9 @@ def test_other_settings_in_the_same_folder_are_refused(tmp_path):
     from d3lvo_deploy.errors import D3LVOInputError
 
     generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96))
-    with pytest.raises(D3LVOInputError, match="other settings"):
+    with pytest.raises(D3LVOInputError, match=r"other settings \(seed 1 there, 2 asked\).*--overwrite"):
         generate(tmp_path / "s", SynthConfig(frames=2, seed=2, width=320, height=96))
+    generate(tmp_path / "s", SynthConfig(frames=2, seed=2, width=320, height=96), resume=False)  # --overwrite
 
 
 def test_motion_replays_real_gt(tmp_path):

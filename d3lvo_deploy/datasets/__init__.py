@@ -58,6 +58,12 @@ def open_sequence(path: str | Path, fmt: str = "auto", gt: str | Path | None = N
         raise D3LVOInputError(None, f"--format must be auto or one of {', '.join(FORMATS)}, not {fmt!r}")
     if calib is not None and fmt in ("kitti", "kitti-raw"):
         raise D3LVOInputError(calib, f"--calib is for bags and folders; a {fmt} sequence brings its own calibration")
+    if bag is not None and fmt != "rosbag":  # a bag's options on another format would be ignored without a word
+        given = [f"--{k.replace('_', '-')}" for k in ("image_topic", "cloud_topic", "info_topic")
+                 if getattr(bag, k) is not None] + (["--max-dt"] if bag.max_dt != BagOptions.max_dt else [])
+        if given:
+            raise D3LVOInputError(path, f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for ROS bags; "
+                                        f"this is a {fmt} recording")
     if fmt == "kitti":
         return KittiSequence.open(path, gt=gt)
     if fmt == "folder":

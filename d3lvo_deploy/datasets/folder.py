@@ -64,6 +64,9 @@ def read_ply(path: Path) -> np.ndarray:
 
 def read_npy(path: Path) -> np.ndarray:
     try:
+        with open(path, "rb") as fh:
+            if fh.read(6) != b"\x93NUMPY":  # else np.load takes it for a pickle and says so
+                raise D3LVOInputError(path, "is not a .npy file (no NumPy header; np.save writes one)")
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as e:
         raise D3LVOInputError(path, f"cannot be read as a .npy array ({e})") from None

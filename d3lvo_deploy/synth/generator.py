@@ -191,9 +191,12 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
     meta = cfg.meta()
     meta_path = out / "synth.json"
     if meta_path.is_file() and resume:
-        old = json.loads(meta_path.read_text())
-        if old != json.loads(json.dumps(meta)):
-            raise D3LVOInputError(out, "holds a synthetic sequence made with other settings; use another --out")
+        old, new = json.loads(meta_path.read_text()), json.loads(json.dumps(meta))
+        if old != new:
+            key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
+            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
+                                       f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
+                                       "it again")
     poses = make_poses(cfg)
     calib = kitti_calib(cfg.width, cfg.height)
     meta_path.write_text(json.dumps(meta, indent=2))
