@@ -472,8 +472,8 @@ def _print_warnings(caught) -> None:
                 continue
         console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
     if scans > SCAN_WARNINGS_SHOWN:
-        console.print(f"[yellow]warning[/] {scans - SCAN_WARNINGS_SHOWN} more frames' scans had the same kind of "
-                      "problem", highlight=False)
+        console.print(f"[yellow]warning[/] and {scans - SCAN_WARNINGS_SHOWN} more scan warnings, one per frame, "
+                      "not shown", highlight=False)
 
 
 def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend) -> None:

@@ -398,7 +398,7 @@ def test_scan_warnings_name_their_frame(tmp_path):
         _print_warnings([W(k) for k in range(SCAN_WARNINGS_SHOWN + 2)])
     lines = cap.get().splitlines()
     assert len(lines) == SCAN_WARNINGS_SHOWN + 1 and lines[0].endswith("frame 000000's scan: no LiDAR points")
-    assert "2 more frames' scans had the same kind of problem" in lines[-1]
+    assert "and 2 more scan warnings, one per frame, not shown" in lines[-1]
 
 
 def test_a_scan_that_is_not_npy_names_the_file(tmp_path):
