@@ -24,12 +24,15 @@ def default_calibration(tmp: Path) -> list[Path]:
 
 
 def _number(val: str) -> bool | int | float | str:
-    if val.lower() in ("true", "false"):
-        return val.lower() == "true"
-    try:
-        return int(val) if val.isdigit() else float(val) if val.replace(".", "", 1).replace("e-", "", 1).isdigit() else val
-    except ValueError:
-        return val
+    """"true" / "false", then an int, then a float (1E-6, -0.5), else the text itself."""
+    if val.strip().lower() in ("true", "false"):
+        return val.strip().lower() == "true"
+    for cast in (int, float):
+        try:
+            return cast(val)
+        except ValueError:
+            pass
+    return val
 
 
 def solver_settings(pairs: list[str]) -> dict:

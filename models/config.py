@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 INPUT_MODES = ("rgb", "rgb_sparse", "rgb_completion")
@@ -17,12 +18,27 @@ SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool
 
 
 def check_solver_settings(settings: dict) -> None:
-    """Refuse `--set` keys that are not solver settings (they would change weights' meaning)."""
+    """Refuse `--set` keys that are not solver settings (they would change weights' meaning), and
+    values of another kind than the setting's (a word for a number); ranges are `D3LVOConfig`'s."""
+    from d3lvo_deploy.errors import D3LVOInputError
+
     bad = sorted(set(settings) - set(SOLVER_KEYS))
     if bad:
-        from d3lvo_deploy.errors import D3LVOInputError
-
         raise D3LVOInputError(None, f"--set takes solver settings only ({', '.join(SOLVER_KEYS)}), not {', '.join(bad)}")
+    defaults = D3LVOConfig()
+    for key, value in settings.items():
+        default = getattr(defaults, key)
+        values = value if isinstance(value, tuple) else (value,)
+        if isinstance(default, bool):
+            ok, what = isinstance(value, bool), "true or false"
+        elif isinstance(default, (int, float)) or isinstance(default, tuple):
+            ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
+            what = "numbers separated by commas" if isinstance(default, tuple) else "a finite number"
+        else:
+            ok, what = True, ""
+        if not ok:
+            joined = ",".join(str(v) for v in values)
+            raise D3LVOInputError(None, f"--set {key}={joined}: {key} takes {what}")
 
 
 @dataclass

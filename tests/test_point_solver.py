@@ -1172,6 +1172,16 @@ def test_bad_solver_settings_are_one_clear_error():
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_restart_depth=2"]))
     with pytest.raises(D3LVOInputError, match="solver settings only"):
         solver_settings(["height=10"])
+    # numbers as Python writes them, negative ones too; a word for a number is refused by name
+    assert solver_settings(["pt_stop=1E-6", "pt_gate=-0.5", "pt_iters=9,9,9", "pt_affine=True"]) == \
+        {"pt_stop": 1e-6, "pt_gate": -0.5, "pt_iters": (9, 9, 9), "pt_affine": True}
+    for bad, words in (("pt_stop=abc", "pt_stop takes a finite number"), ("pt_stop=nan", "pt_stop takes a finite"),
+                       ("pt_iters=a,b", "pt_iters takes numbers separated by commas"),
+                       ("pt_affine=3", "pt_affine takes true or false")):
+        with pytest.raises(D3LVOInputError, match=words):
+            solver_settings([bad])
+    with pytest.raises(ValueError, match="pt_gate must be in"):
+        D3LVOConfig.small(pose_head="points", **solver_settings(["pt_gate=-0.5"]))
 
 
 def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, tmp_path):
