@@ -12,7 +12,7 @@ from rich.table import Table
 from d3lvo_deploy.evaluation import ALIGN_MODES, EvalReport, evaluate_files, pair_result_files
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.extras import require
-from d3lvo_deploy.plot import plot_trajectories
+from d3lvo_deploy.plot import plot_path, plot_trajectories
 
 from .common import console, friendly_errors, out
 
@@ -58,7 +58,9 @@ def eval_command(
     est: list[Path] = typer.Option(..., "--est", help="Estimated trajectory file, or a folder of NN.txt files; "
                                    "give --est several times to compare methods in one table."),
     align: str = typer.Option("none", "--align", help=f"Alignment before scoring: {'|'.join(ALIGN_MODES)}."),
-    plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) trajectory PNG here."),
+    plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) "
+                                     "trajectory plot here: .png (the default suffix), .pdf, .svg or .jpg; for folders "
+                                     "one per sequence, NAME_NN.png."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE.
@@ -69,6 +71,7 @@ def eval_command(
         raise D3LVOInputError(None, f"--align must be one of {', '.join(ALIGN_MODES)}, not {align!r}")
     if plot is not None:
         require("matplotlib", what="--plot")
+        plot = plot_path(plot)
     for p, what in [(gt, "ground truth")] + [(e, "estimate") for e in est]:
         if not p.exists():
             raise D3LVOInputError(p, f"{what} not found")

@@ -236,6 +236,9 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         from d3lvo_deploy.extras import require
 
         require("matplotlib", what="--plot")
+        from d3lvo_deploy.plot import plot_path
+
+        plot = plot_path(plot)
     if sequences is not None:
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")

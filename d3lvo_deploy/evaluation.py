@@ -98,14 +98,45 @@ def _path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
-def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Pair estimate poses with GT frames; returns (est frame index array, valid mask over GT, notes)."""
-    notes: list[str] = []
+def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> np.ndarray:
+    """Where each estimate pose sits in the ground truth: by time where both carry stamps (TUM: the
+    nearest GT stamp, within half the GT's median interval), by frame number where the ground truth
+    numbers its frames (13 columns), else by order."""
+    if est.timestamps is not None and gt.timestamps is not None:
+        pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, max(len(gt) - 1, 1))
+        pos = np.where(np.abs(gt.timestamps[pos - 1] - est.timestamps) <= np.abs(gt.timestamps[pos] - est.timestamps),
+                       pos - 1, pos)
+        tol = 0.5 * float(np.median(np.diff(gt.timestamps))) if len(gt) > 1 else 0.0
+        far = np.abs(gt.timestamps[pos] - est.timestamps) > tol
+        if far.any():
+            k = int(np.argmax(far))
+            raise D3LVOInputError(est_name, f"pose {k} at t = {est.timestamps[k]:.6f} s has no ground-truth pose within "
+                                            f"{tol:.3g} s (the nearest is at {gt.timestamps[pos[k]]:.6f} s)")
+        if np.any(np.diff(pos) <= 0):
+            raise D3LVOInputError(est_name, "two poses fall on the same ground-truth pose (times closer than its rate)")
+        return pos
     ids = est.frame_ids
+    if ids.min(initial=0) < 0:
+        raise D3LVOInputError(est_name, f"frame index {int(ids.min())} is negative")
+    if not np.array_equal(gt.frame_ids, np.arange(len(gt))):  # a ground truth that numbers its frames
+        pos = np.clip(np.searchsorted(gt.frame_ids, ids), 0, len(gt) - 1)
+        missing = gt.frame_ids[pos] != ids
+        if missing.any():
+            raise D3LVOInputError(est_name, f"frame {int(ids[np.argmax(missing)])} is not among the ground truth's "
+                                            "numbered frames")
+        return pos
+    if ids.max(initial=-1) >= len(gt):
+        raise D3LVOInputError(est_name, f"frame index {int(ids.max())} is outside the {len(gt)} GT frames")
+    return ids
+
+
+def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Pair estimate poses with GT frames; returns (GT position of each estimate pose, valid mask
+    over GT, notes)."""
+    notes: list[str] = []
     if len(est) > len(gt):
         raise D3LVOInputError(est_name, f"{len(est)} poses but the ground truth has only {len(gt)}")
-    if ids.max(initial=-1) >= len(gt) or ids.min(initial=0) < 0:
-        raise D3LVOInputError(est_name, f"frame index {int(ids.max())} is outside the {len(gt)} GT frames")
+    ids = gt_positions(gt, est, est_name)
     if len(est) < len(gt) and np.array_equal(ids, np.arange(len(est))):
         notes.append(f"estimate has {len(est)} of {len(gt)} poses: evaluated on the first {len(est)} frames")
     elif len(est) < len(gt):
@@ -116,9 +147,9 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
 
 
 def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "",
-             est_name: str | Path = "estimate") -> SequenceResult:
+             est_name: str | Path = "estimate", gt_name: str | Path | None = None) -> SequenceResult:
     if len(est) < 2 or len(gt) < 2:
-        raise D3LVOInputError(est_name if len(est) < 2 else None, "need at least 2 poses to evaluate")
+        raise D3LVOInputError(est_name if len(est) < 2 else gt_name, "need at least 2 poses to evaluate")
     ids, valid, notes = match_frames(gt, est, est_name)
     last = int(ids[-1])
     gt_poses = gt.poses[: last + 1]
@@ -172,7 +203,7 @@ def evaluate_files(pairs: list[tuple[Path, Path]], align: str = "none") -> EvalR
     for gt_path, est_path in pairs:
         gt = read_poses(gt_path)
         est = read_poses(est_path)
-        results.append(evaluate(gt, est, align=align, name=Path(est_path).stem, est_name=est_path))
+        results.append(evaluate(gt, est, align=align, name=Path(est_path).stem, est_name=est_path, gt_name=gt_path))
     return EvalReport(results, align)
 
 

@@ -6,6 +6,21 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import D3LVOInputError
+
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg")
+
+
+def plot_path(path: Path) -> Path:
+    """Where `--plot PATH` writes: PATH.png without a suffix (and said so), else a kind matplotlib
+    writes, or one error naming the path before any work."""
+    path = Path(path)
+    if not path.suffix:
+        return path.with_name(path.name + ".png")
+    if path.suffix.lower() not in PLOT_SUFFIXES:
+        raise D3LVOInputError(path, f"--plot writes {', '.join(PLOT_SUFFIXES)}; not {path.suffix}")
+    return path
+
 
 def plot_trajectories(out: str | Path, trajectories: dict[str, np.ndarray], title: str = "") -> Path:
     """Draw each (N,4,4) trajectory in cam0's x-z plane (KITTI's bird's-eye view) and save a PNG."""

@@ -42,6 +42,11 @@ def _parse_rows(path: Path) -> list[list[float]]:
     return rows
 
 
+# a KITTI line's rotation may be written with few digits, not with a wrong matrix: the published
+# trajectories and the ground truth in ../shared/data are within 1e-6
+ROTATION_TOLERANCE = 1e-2
+
+
 def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
     """Read a trajectory; `fmt` is auto|kitti|kitti_indexed|tum. Auto decides by the column count."""
     path = Path(path)
@@ -72,6 +77,12 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
     stamps = None
     if fmt == "tum":
         stamps = a[:, 0]
+        norms = np.linalg.norm(a[:, 4:8], axis=1)
+        if np.any(norms < 1e-12):
+            raise D3LVOInputError(path, f"pose {int(np.argmax(norms < 1e-12))}: its quaternion qx qy qz qw is all zero")
+        if np.any(np.diff(stamps) <= 0):
+            raise D3LVOInputError(path, f"pose {int(np.argmax(np.diff(stamps) <= 0)) + 1}: its time does not come after "
+                                        "the previous pose's (TUM times must increase)")
         poses = make_se3(quat_to_rot(a[:, 4:8], scalar_first=False), a[:, 1:4])
         ids = np.arange(len(a))
     else:
@@ -84,6 +95,12 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
             ids = np.arange(len(a))
         poses = np.tile(np.eye(4), (len(a), 1, 1))
         poses[:, :3, :] = a.reshape(-1, 3, 4)
+        R = poses[:, :3, :3]
+        off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+        if np.any(off > ROTATION_TOLERANCE):
+            k = int(np.argmax(off > ROTATION_TOLERANCE))
+            raise D3LVOInputError(path, f"pose {k}: its 3x3 block is not a rotation (R R^T differs from I by {off[k]:.2g}); "
+                                        "a KITTI line is the 3x4 matrix [R | t], row by row")
     return Trajectory(poses, ids, stamps)
 
 

@@ -30,6 +30,12 @@ def test_eval_json_and_plot(tmp_path):
         assert key in data
     assert data["t_rel"] == pytest.approx(1.0, abs=0.02)
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # no suffix: a PNG named so, and said so; a suffix matplotlib does not write: refused before scoring
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--plot", str(tmp_path / "cmp")])
+    assert r.exit_code == 0 and f"plot written to {tmp_path / 'cmp.png'}" in r.output, r.output
+    assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--plot", str(tmp_path / "p.xyz")])
+    assert r.exit_code == 1 and "--plot writes .png, .pdf, .svg, .jpg; not .xyz" in r.output, r.output
 
 
 def test_eval_folders(tmp_path):

@@ -196,3 +196,29 @@ def test_bad_inputs():
         evaluate(gt, Trajectory.from_poses(straight(1)))
     res = evaluate(gt, Trajectory.from_poses(straight(12)))
     assert any("12 of 20" in n for n in res.notes)
+    with pytest.raises(D3LVOInputError, match="gt.txt: need at least 2"):
+        evaluate(Trajectory.from_poses(straight(1)), Trajectory.from_poses(straight(2)), gt_name="gt.txt",
+                 est_name="est.txt")
+    with pytest.raises(D3LVOInputError, match="frame index -1 is negative"):
+        evaluate(gt, Trajectory(straight(3), np.array([-1, 0, 1])))
+
+
+def test_timed_poses_pair_by_time_and_numbered_ones_by_number():
+    """By hand on a 1 m/frame straight drive at 10 Hz (ATE 0 when every pose lands on its own GT
+    frame): a TUM estimate of every second frame pairs by its stamps, not its order; one whose
+    stamps lie after the ground truth's is refused. A 13-column ground truth of the even frames 0..98 pairs with
+    an estimate numbered the same way; a frame it lacks is named."""
+    times = np.arange(50) * 0.1
+    gt = Trajectory(straight(50), np.arange(50), times)
+    every_second = Trajectory(straight(50)[::2], np.arange(25), times[::2])
+    res = evaluate(gt, every_second)
+    assert res.ate == pytest.approx(0.0, abs=1e-12)
+    assert any("skips 25 frames" in n for n in res.notes)
+    late = Trajectory(straight(50)[::2], np.arange(25), times[::2] + 10.0)
+    with pytest.raises(D3LVOInputError, match="has no ground-truth pose within 0.05 s"):
+        evaluate(gt, late, est_name="est.txt")
+    numbered = Trajectory(straight(50), np.arange(0, 100, 2))
+    res = evaluate(numbered, Trajectory(straight(50)[::5], np.arange(0, 100, 10)))
+    assert res.ate == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(D3LVOInputError, match="frame 3 is not among the ground truth's numbered frames"):
+        evaluate(numbered, Trajectory(straight(2), np.array([0, 3])))
