@@ -98,11 +98,15 @@ def _path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
-def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> np.ndarray:
-    """Where each estimate pose sits in the ground truth: by time where both carry stamps (TUM: the
-    nearest GT stamp, within half the GT's median interval), by frame number where the ground truth
-    numbers its frames (13 columns), else by order."""
+def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, str | None]:
+    """Where each estimate pose sits in the ground truth, and a note on how they were paired: by
+    time where both carry stamps on one clock (TUM: the nearest GT stamp, within half the GT's
+    median interval), by frame number where the ground truth numbers its frames (13 columns), else
+    by order."""
     if est.timestamps is not None and gt.timestamps is not None:
+        if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
+            return _by_order(gt, est, est_name), ("the estimate's times do not overlap the ground truth's (another "
+                                                  "clock?): paired by order")
         pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, max(len(gt) - 1, 1))
         pos = np.where(np.abs(gt.timestamps[pos - 1] - est.timestamps) <= np.abs(gt.timestamps[pos] - est.timestamps),
                        pos - 1, pos)
@@ -114,7 +118,11 @@ def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
                                             f"{tol:.3g} s (the nearest is at {gt.timestamps[pos[k]]:.6f} s)")
         if np.any(np.diff(pos) <= 0):
             raise D3LVOInputError(est_name, "two poses fall on the same ground-truth pose (times closer than its rate)")
-        return pos
+        return pos, None
+    return _by_order(gt, est, est_name), None
+
+
+def _by_order(gt: Trajectory, est: Trajectory, est_name: str | Path) -> np.ndarray:
     ids = est.frame_ids
     if ids.min(initial=0) < 0:
         raise D3LVOInputError(est_name, f"frame index {int(ids.min())} is negative")
@@ -136,7 +144,8 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
     notes: list[str] = []
     if len(est) > len(gt):
         raise D3LVOInputError(est_name, f"{len(est)} poses but the ground truth has only {len(gt)}")
-    ids = gt_positions(gt, est, est_name)
+    ids, how = gt_positions(gt, est, est_name)
+    notes += [how] if how else []
     if len(est) < len(gt) and np.array_equal(ids, np.arange(len(est))):
         notes.append(f"estimate has {len(est)} of {len(gt)} poses: evaluated on the first {len(est)} frames")
     elif len(est) < len(gt):

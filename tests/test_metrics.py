@@ -206,7 +206,8 @@ def test_bad_inputs():
 def test_timed_poses_pair_by_time_and_numbered_ones_by_number():
     """By hand on a 1 m/frame straight drive at 10 Hz (ATE 0 when every pose lands on its own GT
     frame): a TUM estimate of every second frame pairs by its stamps, not its order; one whose
-    stamps lie after the ground truth's is refused. A 13-column ground truth of the even frames 0..98 pairs with
+    stamps run past the ground truth's end is refused, and one on another clock altogether pairs
+    by order, with a note. A 13-column ground truth of the even frames 0..98 pairs with
     an estimate numbered the same way; a frame it lacks is named."""
     times = np.arange(50) * 0.1
     gt = Trajectory(straight(50), np.arange(50), times)
@@ -214,9 +215,12 @@ def test_timed_poses_pair_by_time_and_numbered_ones_by_number():
     res = evaluate(gt, every_second)
     assert res.ate == pytest.approx(0.0, abs=1e-12)
     assert any("skips 25 frames" in n for n in res.notes)
-    late = Trajectory(straight(50)[::2], np.arange(25), times[::2] + 10.0)
+    late = Trajectory(straight(50)[::2], np.arange(25), times[::2] + 3.0)  # from frame 30 on, past the GT's end
     with pytest.raises(D3LVOInputError, match="has no ground-truth pose within 0.05 s"):
         evaluate(gt, late, est_name="est.txt")
+    other_clock = Trajectory(straight(20), np.arange(20), times[:20] + 1e9)  # epoch stamps against 0-based ones
+    res = evaluate(gt, other_clock)
+    assert res.ate == pytest.approx(0.0, abs=1e-12) and any("paired by order" in n for n in res.notes)
     numbered = Trajectory(straight(50), np.arange(0, 100, 2))
     res = evaluate(numbered, Trajectory(straight(50)[::5], np.arange(0, 100, 10)))
     assert res.ate == pytest.approx(0.0, abs=1e-12)
