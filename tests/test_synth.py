@@ -1,6 +1,7 @@
 """The synthetic KITTI world: layout, determinism, resume, and LiDAR/camera geometric consistency."""
 
 import hashlib
+import re
 
 import cv2
 import numpy as np
@@ -184,3 +185,27 @@ def test_synthetic_drive_is_plausible():
     assert np.abs(acc).max() < 3.5  # rate-limited like a car
     # camera stays level: the y axis keeps pointing (nearly) down
     assert np.all(poses[:, 1, 1] > 0.99)
+
+
+@pytest.mark.parametrize("cfg, words", [
+    (dict(seed=-1), "--seed must be 0 or more, not -1"),
+    (dict(traffic=float("nan")), "--traffic must be 0 or more vehicles per 100 m, not nan"),
+    (dict(traffic=float("inf")), "--traffic must be 0 or more vehicles per 100 m, not inf"),
+    (dict(motion_start=50), "--motion-start is the first frame of --motion-from's trajectory"),
+])
+def test_settings_that_cannot_render_are_refused_before_any_folder(tmp_path, cfg, words):
+    from d3lvo_deploy.errors import D3LVOInputError
+
+    with pytest.raises(D3LVOInputError, match=re.escape(words)):
+        generate(tmp_path / "s", SynthConfig(frames=2, width=320, height=96, **cfg))
+    assert not (tmp_path / "s").exists()
+
+
+def test_overwrite_with_fewer_frames_leaves_none_of_the_old_ones(tmp_path):
+    from d3lvo_deploy.sequence import KittiSequence
+
+    generate(tmp_path / "s", SynthConfig(frames=4, seed=1, width=320, height=96, traffic=3.0))
+    generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96), resume=False)
+    seq = KittiSequence.open(tmp_path / "s")  # 2 images, 2 scans, 2 times, 2 poses
+    assert len(seq) == 2 and len(seq.ground_truth) == 2
+    assert sorted(p.name for p in (tmp_path / "s" / "motion_2").iterdir()) == ["000000.png", "000001.png"]

@@ -14,6 +14,7 @@ pure function of (seed, frame), so an interrupted run resumes where it stopped w
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -174,8 +175,25 @@ def check_config(cfg: SynthConfig) -> None:
         raise D3LVOInputError(None, "--frames must be at least 2")
     if cfg.width < 64 or cfg.height < 32:
         raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too small")
-    if cfg.traffic < 0:
+    if not (math.isfinite(cfg.traffic) and cfg.traffic >= 0):
         raise D3LVOInputError(None, f"--traffic must be 0 or more vehicles per 100 m, not {cfg.traffic}")
+    if cfg.seed < 0:
+        raise D3LVOInputError(None, f"--seed must be 0 or more, not {cfg.seed}")
+    if cfg.motion_start < 0 or (cfg.motion_start and cfg.motion_from is None):
+        raise D3LVOInputError(None, "--motion-start is the first frame of --motion-from's trajectory to replay: "
+                                    "0 or more, and only with --motion-from")
+
+
+FRAME_FOLDERS = ("image_2", "velodyne", "depth_2", "motion_2", "flow_2", "shadow_2")
+
+
+def _drop_other_frames(out: Path, frames: int) -> None:
+    """Files of frames beyond this render's (an earlier, longer render into the folder, then
+    --overwrite): left there, the folder would hold more images than poses."""
+    for d in FRAME_FOLDERS:
+        for f in (out / d).glob("*") if (out / d).is_dir() else ():
+            if f.stem.isdigit() and int(f.stem) >= frames:
+                f.unlink()
 
 
 def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
@@ -197,6 +215,7 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
             raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
                                        f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
                                        "it again")
+    _drop_other_frames(out, cfg.frames)
     poses = make_poses(cfg)
     calib = kitti_calib(cfg.width, cfg.height)
     meta_path.write_text(json.dumps(meta, indent=2))
