@@ -47,6 +47,7 @@ def demo_command(
 
     t_start = time.perf_counter()
     model_dir = resolve_model_dir(onnx)
+    load_manifest(model_dir, verify_hashes=False)  # a wrong --onnx is one error before any rendering
     seq_dir = out_dir / "synthetic_heldout"
     cfg = SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1])
     check_config(cfg)
@@ -63,7 +64,8 @@ def demo_command(
 
     sc = SessionConfig(backend="auto").resolved()  # OpenVINO where installed: the faster engine here
     engine = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}[sc.backend]
-    console.print(f"[bold]2/3[/] D3LVO ({engine}, bundled model) on it", highlight=False)
+    console.print(f"[bold]2/3[/] D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) on it",
+                  highlight=False)
     seq = KittiSequence.open(seq_dir)
     poses_path = out_dir / "synthetic_heldout_poses.txt"
     with frame_progress() as bar:

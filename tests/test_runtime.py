@@ -532,3 +532,9 @@ def test_frame_preparation_holds_blas_to_one_thread(small_model, small_synth, mo
         after = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
     assert seen and seen[0] and all(n == 1 for n in seen[0]), seen
     assert after and all(n == 2 for n in after), after
+
+
+def test_demo_checks_its_model_before_rendering(tmp_path):
+    r = runner.invoke(app, ["demo", "--onnx", str(tmp_path / "none"), "--frames", "2", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "none: model folder not found" in r.output, r.output
+    assert not (tmp_path / "o").exists()
