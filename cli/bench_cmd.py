@@ -149,6 +149,12 @@ def bench_command(
         raise D3LVOInputError(None, f"--prepare-threads must be 1 or 2, not {prepare_threads}")
     if (height is None) != (width is None):
         raise D3LVOInputError(None, "give --height and --width together")
+    if height is not None:
+        from models.config import input_size_problem
+
+        problem = input_size_problem(height, width)
+        if problem:
+            raise D3LVOInputError(None, f"--height {height} --width {width}: {problem}")
     if height is not None and onnx is not None:
         raise D3LVOInputError(onnx, "an exported folder has a fixed size; use --ckpt (or neither) with --height/--width")
     if precision not in ("fp32", "fp16", "int8"):
@@ -165,6 +171,8 @@ def bench_command(
     unknown = [] if engines is None else [b for b in engines or [backend] if b not in BACKENDS]
     if unknown:  # an engine we do not know, or a list that names none
         raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {unknown[0]!r}")
+    if ov_precision != "f32" and engines is not None and "openvino" not in engines:
+        raise D3LVOInputError(None, "--ov-precision applies to OpenVINO: add openvino to --backend")
     for b in BACKENDS if engines is None else engines:
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
     if engines is not None and "openvino" in engines:

@@ -101,6 +101,8 @@ def export_command(
     if (ckpt is None) == (onnx_dir is None):
         raise D3LVOInputError(None, "give either --ckpt (a checkpoint to export) or --onnx (an fp32 model folder "
                                     "to convert with --precision fp16|int8)")
+    if calib_seq and precision != "int8":
+        raise D3LVOInputError(calib_seq[0], "--calib-seq calibrates an INT8 export: it needs --precision int8")
     if onnx_dir is not None:
         given = [f"--{name.replace('_', '-')}" for name in ("opset", "height", "width", "dynamic_batch")
                  if given_on_command_line(ctx, name)] + (["--set"] if given_on_command_line(ctx, "solver") else [])

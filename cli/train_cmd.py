@@ -140,6 +140,10 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         raise D3LVOInputError(config, "give the checkpoint to write: --out FILE.pt or out = '...' in [train]")
     if precision not in ("fp32", "bf16", "fp16"):
         raise D3LVOInputError(None, f"--precision must be fp32, bf16 or fp16, not {precision!r}")
+    _check_numbers(config, steps=steps, stop_at=stop_at, batch_size=batch_size, lr=lr, val_every=val_every,
+                   ckpt_every=ckpt_every, workers=workers)
+    _check_device(device)
+    _check_out(Path(out))
     settings = solver_settings(solver)
     if init is not None and resume is not None:
         raise D3LVOInputError(init, "--init starts a new training; --resume continues one: give one of them")
@@ -160,6 +164,11 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
                                      "sequences/NN): training and validation need them")
     if resume is not None:
         ck = load_checkpoint(resume)
+        last = min(steps, stop_at) if stop_at is not None else steps
+        if ck["step"] >= last:
+            raise D3LVOInputError(resume, f"is at step {ck['step']} already: nothing to train up to "
+                                          f"{'--stop-at' if stop_at is not None and stop_at < steps else '--steps'} "
+                                          f"{last} (give more steps)")
         # the preset (size, levels) comes from the checkpoint; a different mode or head is refused
         # in train() with the differing fields named
         preset_keys = ("height", "width", "flow_levels", "gn_extra_levels")
@@ -210,5 +219,47 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
                           highlight=False)
             raise typer.Exit(130) from None
     if rank0:
+        if rec.get("step") is None or not Path(out).is_file():
+            raise D3LVOInputError(out, "no step was trained, so no checkpoint was written")
         console.print(f"checkpoint {out} at step {rec.get('step')} (loss {rec.get('loss', float('nan')):.4f})",
                       highlight=False)
+
+
+def _check_numbers(config: Path | None, **values) -> None:
+    """Counts and rates that cannot train, one error naming the option before any work (a zero
+    --ckpt-every would divide by zero at the first step, a negative --lr end in NaN)."""
+    import math
+
+    least = {"steps": 1, "stop_at": 1, "batch_size": 1, "val_every": 1, "ckpt_every": 1, "workers": 0}
+    for name, v in values.items():
+        flag = "--" + name.replace("_", "-")
+        if name == "lr":
+            if not (math.isfinite(v) and v > 0):
+                raise D3LVOInputError(config, f"{flag} must be a positive learning rate, not {v}")
+        elif v is not None and v < least[name]:
+            raise D3LVOInputError(config, f"{flag} must be at least {least[name]}, not {v}")
+
+
+def _check_device(device: str) -> None:
+    if device not in ("auto", "cpu", "cuda"):
+        raise D3LVOInputError(None, f"--device must be auto, cpu or cuda, not {device!r}")
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise D3LVOInputError(None, "--device cuda: this torch sees no CUDA GPU (a CPU build, or no driver); "
+                                        "--device cpu trains here")
+
+
+def _check_out(out: Path) -> None:
+    """The checkpoint can be written where it is asked for: found out at the first save, the steps
+    before it would be lost."""
+    if out.is_dir():
+        raise D3LVOInputError(out, "is a folder; --out names the checkpoint file to write (e.g. runs/model.pt)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        probe = out.with_name(f"{out.name}.probe{os.getpid()}")  # one per process under torchrun
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise D3LVOInputError(out, f"cannot write the checkpoint there ({e.strerror})") from None

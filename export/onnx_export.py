@@ -27,7 +27,7 @@ from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DO
 from d3lvo_deploy.manifest import sha256_file as sha256
 from d3lvo_deploy.points import SCAN_DEPTH_INPUT
 from models.checkpoint import build_model, load_checkpoint
-from models.config import check_solver_settings
+from models.config import check_solver_settings, input_size_problem
 from models.d3lvo import D3LVO
 from models.layers import inverse_depth
 from models.point_solver import image_pyramids, pyramid_input_names
@@ -191,9 +191,11 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
     """Export the stages and write manifest.json; returns the manifest."""
     ck = load_checkpoint(ckpt)
     cfg = ck["config"]
-    h, w = ec.height or cfg.height, ec.width or cfg.width
-    if h % 16 or w % 16:
-        raise D3LVOInputError(None, f"--height/--width {w}x{h} must be divisible by 16")
+    h = cfg.height if ec.height is None else ec.height
+    w = cfg.width if ec.width is None else ec.width
+    problem = input_size_problem(h, w)
+    if problem:
+        raise D3LVOInputError(None, f"--height/--width: {problem}")
     if ec.opset < 16:
         raise D3LVOInputError(None, f"--opset {ec.opset}: GridSample (bilinear warping) needs opset 16 or newer")
     check_solver_settings(ec.solver)

@@ -46,6 +46,9 @@ def load_checkpoint(path: str | Path, expect: D3LVOConfig | None = None, ignore:
         raise D3LVOInputError(path, "not a D3LVO checkpoint (no 'd3lvo-checkpoint' format tag)")
     if ck.get("version") != VERSION:
         raise D3LVOInputError(path, f"checkpoint format version {ck.get('version')}, this toolkit reads {VERSION}")
+    for key, kind, what in (("config", dict, "a model config"), ("model", dict, "the weights (a state dict)")):
+        if not isinstance(ck.get(key), kind):
+            raise D3LVOInputError(path, f"'{key}' is missing or not {what}: not a checkpoint `d3lvo train` wrote")
     try:
         cfg = D3LVOConfig.from_dict(ck["config"])
     except (TypeError, ValueError) as e:

@@ -41,6 +41,21 @@ def check_solver_settings(settings: dict) -> None:
             raise D3LVOInputError(None, f"--set {key}={joined}: {key} takes {what}")
 
 
+MIN_INPUT = 32  # pixels a side: h/16, the coarsest level, keeps at least two cells
+
+
+def input_size_problem(height, width) -> str | None:
+    """What is wrong with a network input size, or None: whole pixels, at least MIN_INPUT a side,
+    divisible by 16 (four pyramid levels halve it)."""
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (height, width)):
+        return f"input size {width!r}x{height!r} must be whole numbers of pixels"
+    if height < MIN_INPUT or width < MIN_INPUT:
+        return f"input {width}x{height} is too small: at least {MIN_INPUT}x{MIN_INPUT}"
+    if height % 16 or width % 16:
+        return f"input {width}x{height} must be divisible by 16 (4 pyramid levels)"
+    return None
+
+
 @dataclass
 class D3LVOConfig:
     # input (paper: 1216x352 bottom-centre crop of image_2; `scale` resizes it for cheaper models)
@@ -186,12 +201,13 @@ class D3LVOConfig:
     dropout: float = 0.2
 
     def __post_init__(self) -> None:
+        problem = input_size_problem(self.height, self.width)
+        if problem:
+            raise ValueError(problem)
         if self.mode not in INPUT_MODES:
             raise ValueError(f"mode must be one of {INPUT_MODES}, not {self.mode!r}")
         if self.completion not in COMPLETIONS:
             raise ValueError(f"completion must be one of {COMPLETIONS}, not {self.completion!r}")
-        if self.height % 16 or self.width % 16:
-            raise ValueError(f"input {self.width}x{self.height} must be divisible by 16 (4 pyramid levels)")
         if list(self.flow_levels) != sorted(self.flow_levels, reverse=True) or not self.flow_levels:
             raise ValueError("flow_levels must run coarse to fine, e.g. (3, 2, 1)")
         if any(not 0 <= lvl <= 3 for lvl in (*self.flow_levels, *self.xa_levels)):

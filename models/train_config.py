@@ -48,11 +48,20 @@ def _check_type(path: Path, table: str, key: str, value, default) -> object:
     elif isinstance(default, int):
         ok = isinstance(value, int) and not isinstance(value, bool)
     elif isinstance(default, (tuple, list)):
-        ok = isinstance(value, list)
+        # elements of the default's kind: numbers for widths and weights, text (paths, names) where
+        # the default is empty
+        like = default[0] if default else ""
+        ok = isinstance(value, list) and all(
+            isinstance(v, str) if isinstance(like, str) else
+            isinstance(v, (int, float)) and not isinstance(v, bool) and (isinstance(like, float) or isinstance(v, int))
+            for v in value)
         value = tuple(value) if ok and isinstance(default, tuple) else value
     else:
         ok = isinstance(value, type(default))
     if not ok:
+        if isinstance(default, (tuple, list)):
+            what = "a list of quoted strings" if isinstance(default[0] if default else "", str) else "a list of numbers"
+            raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be {what}, like {list(default) or ['a', 'b']!r}")
         raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be like {default!r}")
     return value
 

@@ -207,6 +207,11 @@ def test_cli_export_errors(tmp_path):
     assert r.exit_code == 1 and "not writable" in r.output and "Traceback" not in r.output
     r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--height", "100"])
     assert r.exit_code == 1 and "divisible by 16" in r.output
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--height", "0", "--width", "0"])
+    assert r.exit_code == 1 and "input 0x0 is too small: at least 32x32" in r.output, r.output
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--calib-seq", str(tmp_path)])
+    assert r.exit_code == 1 and "--calib-seq calibrates an INT8 export" in r.output, r.output
+    assert not (tmp_path / "o").exists()
     r = runner.invoke(app, ["export", "--ckpt", str(tmp_path), "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and "is a folder, not a checkpoint file" in r.output
 

@@ -140,6 +140,39 @@ def test_checkpoint_errors(tmp_path):
     torch.save({"state_dict": {}}, other)
     with pytest.raises(D3LVOInputError, match="not a D3LVO checkpoint"):
         load_checkpoint(other)
+    ck = torch.load(p, weights_only=False)
+    for key, value, words in (("model", None, "'model' is missing or not the weights"),
+                              ("model", "weights", "'model' is missing or not the weights"),
+                              ("config", None, "'config' is missing or not a model config")):
+        torch.save({**ck, key: value} if value is not None else {k: v for k, v in ck.items() if k != key}, other)
+        with pytest.raises(D3LVOInputError, match=words):
+            load_checkpoint(other)
+    torch.save({**ck, "config": {**ck["config"], "height": "tall"}}, other)
+    with pytest.raises(D3LVOInputError, match="must be whole numbers of pixels"):
+        load_checkpoint(other)
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--steps", "0"], "--steps must be at least 1, not 0"),
+    (["--stop-at", "0"], "--stop-at must be at least 1, not 0"),
+    (["--batch-size", "0"], "--batch-size must be at least 1, not 0"),
+    (["--workers", "-1"], "--workers must be at least 0, not -1"),
+    (["--ckpt-every", "0"], "--ckpt-every must be at least 1, not 0"),
+    (["--val-every", "0"], "--val-every must be at least 1, not 0"),
+    (["--lr", "-1"], "--lr must be a positive learning rate, not -1.0"),
+    (["--device", "tpu"], "--device must be auto, cpu or cuda, not 'tpu'"),
+    (["--out", "DIR"], "is a folder; --out names the checkpoint file to write"),
+])
+def test_training_options_that_cannot_train_stop_before_any_work(small_synth, tmp_path, extra, words):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    extra = [str(tmp_path) if x == "DIR" else x for x in extra]
+    out = [] if "--out" in extra else ["--out", str(tmp_path / "a.pt")]
+    r = CliRunner().invoke(app, ["train", "--data", str(small_synth), *out, "--preset", "small", *extra])
+    assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, r.output
+    assert not (tmp_path / "a.pt").exists() and not (tmp_path / "a.toml").exists()
 
 
 def test_training_data_without_poses_is_refused_before_any_work(small_synth, tmp_path):
@@ -184,9 +217,12 @@ def test_resume_continues_the_step_count(small_synth, tmp_path):
     fresh = D3LVO(after["config"]).state_dict()
     dist = lambda a: sum(float((a[k] - v).pow(2).sum()) for k, v in before.items() if v.is_floating_point())  # noqa: E731
     assert 0 < dist(after["model"]) < 0.01 * dist(fresh)  # one more step from the same weights, not a new network
+    # a resumed run already at its last step has nothing to train, and says so rather than "saved"
+    r = train_cli("--out", str(tmp_path / "a.pt"), "--steps", "3", "--resume", str(tmp_path / "a.pt"))
+    assert r.exit_code == 1 and "is at step 3 already: nothing to train up to --steps 3" in r.output, r.output
     r = train_cli("--out", str(tmp_path / "c.pt"), "--steps", "1", "--set", "flow_hidden=8")
     assert r.exit_code == 1 and "--set takes solver settings only" in r.output
-    r = train_cli("--out", str(tmp_path / "b.pt"), "--steps", "3", "--preset", "small", "--mode", "rgb", "--resume",
+    r = train_cli("--out", str(tmp_path / "b.pt"), "--steps", "4", "--preset", "small", "--mode", "rgb", "--resume",
                   str(tmp_path / "a.pt"))
     assert r.exit_code == 1 and "another model config" in r.output and "Traceback" not in r.output
 
