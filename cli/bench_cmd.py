@@ -186,6 +186,10 @@ def bench_command(
 
         require("torch", "onnx", what="d3lvo bench with --ckpt, --height/--width or --torch-compile")
     other = None if against is None else load_manifest(against)  # a clear error for a folder that is no export
+    if seq_dir is not None:
+        from d3lvo_deploy.sequence import KittiSequence
+
+        KittiSequence.open(seq_dir)  # a bad folder is one error before an export
     if seq_dir is None and find_real_frames() is None:
         from d3lvo_deploy.extras import require
 

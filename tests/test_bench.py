@@ -131,6 +131,12 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
     # accepted, so the next check, of --threads, is the one that stops this command
     r = runner.invoke(app, ["bench", "--height", "64", "--width", "256", "--precision", "fp16", "--threads", "-1"])
     assert r.exit_code != 0 and "--threads" in r.output and "--precision" not in r.output, r.output
+    for args, words in ((["--height", "0", "--width", "0"], "input 0x0 is too small: at least 32x32"),
+                        (["--height", "-16", "--width", "64"], "input 64x-16 is too small"),
+                        (["--backend", "onnxruntime", "--ov-precision", "bf16"], "--ov-precision applies to OpenVINO"),
+                        (["--seq-dir", "nowhere"], "nowhere: sequence folder not found")):
+        r = runner.invoke(app, ["bench", *args])
+        assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, (args, r.output)
 
 
 def test_cli_bench_refuses_a_backend_list_without_an_engine():
