@@ -18,7 +18,7 @@ from .common import console, friendly_errors, out
 
 
 def _fmt(v: float | None, nd: int = 2) -> str:
-    return "n/a" if v is None else f"{v:.{nd}f}"
+    return "n/a" if v is None or v != v else f"{v:.{nd}f}"  # None or NaN
 
 
 def report_table(report: EvalReport | dict[str, EvalReport]) -> Table:
@@ -34,11 +34,11 @@ def report_table(report: EvalReport | dict[str, EvalReport]) -> Table:
         lead = [escape(label)] if len(reports) > 1 else []
         for s in rep.sequences:
             table.add_row(*lead, s.name, str(s.frames), f"{s.path_length_m:.1f}", _fmt(s.t_rel), _fmt(s.r_rel),
-                          f"{s.ate:.3f}", f"{s.rpe_t:.4f}", f"{s.rpe_r:.4f}", str(s.segments))
+                          f"{s.ate:.3f}", _fmt(s.rpe_t, 4), _fmt(s.rpe_r, 4), str(s.segments))
         if len(rep.sequences) > 1:
             o = rep.overall
             table.add_row(*lead, "[bold]all[/]", str(o["frames"]), "", _fmt(o["t_rel"]), _fmt(o["r_rel"]),
-                          f"{o['ate']:.3f}", f"{o['rpe_t']:.4f}", f"{o['rpe_r']:.4f}", str(o["segments"]))
+                          f"{o['ate']:.3f}", _fmt(o["rpe_t"], 4), _fmt(o["rpe_r"], 4), str(o["segments"]))
     return table
 
 
@@ -60,7 +60,7 @@ def eval_command(
     align: str = typer.Option("none", "--align", help=f"Alignment before scoring: {'|'.join(ALIGN_MODES)}."),
     plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) "
                                      "trajectory plot here: .png (the default suffix), .pdf, .svg or .jpg; for folders "
-                                     "one per sequence, NAME_NN.png."),
+                                     "one per sequence, STEM_SEQUENCE.png (cmp_09.png for --plot cmp.png)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE.

@@ -49,6 +49,10 @@ RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", 
             "pipeline", "classical_beside")
 
 
+# what a results folder's config says of its recording alone, not taken for another one
+RECORDING_KEYS = ("fmt", "image_topic", "cloud_topic", "info_topic", "max_dt")
+
+
 def throughput_line(summary) -> str:
     """Frames per second of wall time beside the per-frame latency: with the pipeline they differ."""
     total = summary.latencies_ms.get("total", [])
@@ -154,8 +158,8 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
     hints = typing.get_type_hints(inspect.unwrap(run_command))
     for k, v in table.items():
-        if k == "fmt" and (given("path") or given("seq_dir")):
-            continue  # another recording: its own format, guessed again
+        if k in RECORDING_KEYS and (given("path") or given("seq_dir")):
+            continue  # another recording: its own format (guessed again) and topics
         if not given(k):
             opts[k] = _config_value(config, k, v, hints[k])
     return opts
@@ -312,8 +316,13 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                   classical_beside=classical_beside)
     if folder is not None:
         folder.create()
-    _write_config(record_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx), engine_name,
-                  seq, plan)
+    try:
+        _write_config(record_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx),
+                      engine_name, seq, plan)
+    except D3LVOInputError as e:
+        if folder is not None:  # the results folder is the run's own: it must hold its config
+            raise
+        console.print(f"[yellow]warning[/] {escape(str(e))}: --resume cannot check what it continues", highlight=False)
     if folder is not None and fresh:
         from d3lvo_deploy.results import link_latest
 

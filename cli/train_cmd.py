@@ -140,10 +140,9 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         raise D3LVOInputError(config, "give the checkpoint to write: --out FILE.pt or out = '...' in [train]")
     if precision not in ("fp32", "bf16", "fp16"):
         raise D3LVOInputError(None, f"--precision must be fp32, bf16 or fp16, not {precision!r}")
-    _check_numbers(config, steps=steps, stop_at=stop_at, batch_size=batch_size, lr=lr, val_every=val_every,
+    _check_numbers(steps=steps, stop_at=stop_at, batch_size=batch_size, lr=lr, val_every=val_every,
                    ckpt_every=ckpt_every, workers=workers)
     _check_device(device)
-    _check_out(Path(out))
     settings = solver_settings(solver)
     if init is not None and resume is not None:
         raise D3LVOInputError(init, "--init starts a new training; --resume continues one: give one of them")
@@ -162,6 +161,8 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         if KittiSequence.open(d).ground_truth is None:
             raise D3LVOInputError(d, "has no ground-truth poses (poses.txt inside, or poses/NN.txt beside "
                                      "sequences/NN): training and validation need them")
+    if int(os.environ.get("RANK", "0")) == 0:  # the rank that writes the checkpoints
+        _check_out(Path(out))
     if resume is not None:
         ck = load_checkpoint(resume)
         last = min(steps, stop_at) if stop_at is not None else steps
@@ -225,7 +226,7 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
                       highlight=False)
 
 
-def _check_numbers(config: Path | None, **values) -> None:
+def _check_numbers(**values) -> None:
     """Counts and rates that cannot train, one error naming the option before any work (a zero
     --ckpt-every would divide by zero at the first step, a negative --lr end in NaN)."""
     import math
@@ -235,9 +236,9 @@ def _check_numbers(config: Path | None, **values) -> None:
         flag = "--" + name.replace("_", "-")
         if name == "lr":
             if not (math.isfinite(v) and v > 0):
-                raise D3LVOInputError(config, f"{flag} must be a positive learning rate, not {v}")
+                raise D3LVOInputError(None, f"{flag} must be a positive learning rate, not {v}")
         elif v is not None and v < least[name]:
-            raise D3LVOInputError(config, f"{flag} must be at least {least[name]}, not {v}")
+            raise D3LVOInputError(None, f"{flag} must be at least {least[name]}, not {v}")
 
 
 def _check_device(device: str) -> None:

@@ -43,7 +43,7 @@ class SequenceResult:
         d = asdict(self)
         for k in ("segment_rows", "gt_poses", "est_poses"):
             d.pop(k)
-        return d
+        return {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in d.items()}  # JSON: null
 
 
 @dataclass
@@ -61,8 +61,8 @@ class EvalReport:
             "t_rel": None if math.isnan(t_rel) else t_rel,
             "r_rel": None if math.isnan(r_rel) else r_rel,
             "ate": float(np.average([s.ate for s in self.sequences], weights=frames)),
-            "rpe_t": float(np.average([s.rpe_t for s in self.sequences], weights=frames)),
-            "rpe_r": float(np.average([s.rpe_r for s in self.sequences], weights=frames)),
+            "rpe_t": _finite_average([s.rpe_t for s in self.sequences], frames),
+            "rpe_r": _finite_average([s.rpe_r for s in self.sequences], frames),
             "segments": int(len(rows)),
             "frames": int(frames.sum()),
         }
@@ -72,6 +72,13 @@ class EvalReport:
         if len(self.sequences) == 1:
             return {**self.sequences[0].to_dict(), "align": self.align}
         return {**self.overall, "align": self.align, "sequences": [s.to_dict() for s in self.sequences]}
+
+
+def _finite_average(values: list[float], weights: np.ndarray) -> float | None:
+    """The weighted mean of the sequences that have the value (RPE needs adjacent frames)."""
+    v = np.asarray(values, dtype=np.float64)
+    ok = np.isfinite(v)
+    return float(np.average(v[ok], weights=weights[ok])) if ok.any() else None
 
 
 def align_estimate(gt: np.ndarray, est: np.ndarray, mode: str) -> tuple[np.ndarray, float]:
@@ -117,7 +124,10 @@ def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
             raise D3LVOInputError(est_name, f"pose {k} at t = {est.timestamps[k]:.6f} s has no ground-truth pose within "
                                             f"{tol:.3g} s (the nearest is at {gt.timestamps[pos[k]]:.6f} s)")
         if np.any(np.diff(pos) <= 0):
-            raise D3LVOInputError(est_name, "two poses fall on the same ground-truth pose (times closer than its rate)")
+            k = int(np.argmax(np.diff(pos) <= 0))
+            raise D3LVOInputError(est_name, f"poses {k} and {k + 1} (t = {est.timestamps[k]:.6f}, "
+                                            f"{est.timestamps[k + 1]:.6f} s) fall on the same ground-truth pose: "
+                                            "the estimate is faster than the ground truth")
         return pos, None
     return _by_order(gt, est, est_name), None
 
@@ -126,7 +136,7 @@ def _by_order(gt: Trajectory, est: Trajectory, est_name: str | Path) -> np.ndarr
     ids = est.frame_ids
     if ids.min(initial=0) < 0:
         raise D3LVOInputError(est_name, f"frame index {int(ids.min())} is negative")
-    if not np.array_equal(gt.frame_ids, np.arange(len(gt))):  # a ground truth that numbers its frames
+    if est.numbered and gt.numbered:  # both number their frames: by number
         pos = np.clip(np.searchsorted(gt.frame_ids, ids), 0, len(gt) - 1)
         missing = gt.frame_ids[pos] != ids
         if missing.any():
@@ -184,6 +194,8 @@ def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "
             if path_len <= metrics.SEGMENT_LENGTHS[0] else "no complete 100 m segment: t_rel/r_rel unavailable"
         )
     consecutive = np.nonzero(np.diff(ids) == 1)[0]  # RPE only between frames that are really adjacent
+    if len(consecutive) == 0:
+        notes.append("no two poses are on adjacent ground-truth frames: RPE unavailable")
     gt_m = gt_rel[ids]
     rpe_t, rpe_r = metrics.rpe_from_motions(
         relative(gt_m[consecutive], gt_m[consecutive + 1]), relative(aligned[consecutive], aligned[consecutive + 1])

@@ -203,10 +203,11 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     n = end - rc.start
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
-        warnings.warn(f"{rc.viz_dir}: --viz draws every {rc.viz_every}th frame after the first, and this run has "
-                      f"{n} frames: no picture (a smaller --viz-every draws more)")
+        warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "
+                      f"{rc.viz_every}), and this one has {n} frames: no picture (a smaller --viz-every draws more)")
     image = seq.image(rc.start)
-    check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(rc.start), seq.root, seq.frame_names[rc.start])
+    check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(rc.start), getattr(seq, "calib_path", None) or seq.root,
+              seq.frame_names[rc.start])
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
     opens = odometry is None and model is None  # this run opens the network's sessions, split as it pipelines
     backend = model.backend if model is not None else sc.resolved().backend

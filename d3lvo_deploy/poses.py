@@ -18,6 +18,7 @@ class Trajectory:
     poses: np.ndarray
     frame_ids: np.ndarray
     timestamps: np.ndarray | None = None
+    numbered: bool = False  # the file numbered its frames (kitti-odom-eval's 13 columns)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -97,11 +98,13 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
         poses[:, :3, :] = a.reshape(-1, 3, 4)
         R = poses[:, :3, :3]
         off = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+        off = np.where(np.linalg.det(R) > 0, off, np.inf)  # a reflection is no rotation either
         if np.any(off > ROTATION_TOLERANCE):
             k = int(np.argmax(off > ROTATION_TOLERANCE))
-            raise D3LVOInputError(path, f"pose {k}: its 3x3 block is not a rotation (R R^T differs from I by {off[k]:.2g}); "
+            raise D3LVOInputError(path, f"pose {k}: its 3x3 block is not a rotation (R R^T differs from I by {off[k]:.2g}, or "
+                                        "its determinant is negative); "
                                         "a KITTI line is the 3x4 matrix [R | t], row by row")
-    return Trajectory(poses, ids, stamps)
+    return Trajectory(poses, ids, stamps, numbered=fmt == "kitti_indexed")
 
 
 def format_kitti_line(T: np.ndarray, spec: str = ".9e") -> str:

@@ -138,8 +138,8 @@ def check_resume(record: Path, current: dict[str, dict], poses: Path) -> None:
     to those in `poses` of the run `record` holds: one error naming what differs, before any pose is added,
     rather than one file holding two recordings' frames."""
     old = read_toml(record, "run record")
-    if not isinstance(old.get("run"), dict):
-        raise D3LVOInputError(record, "has no [run] table (d3lvo run writes one)")
+    if not isinstance(old.get("run"), dict) or not isinstance(old.get("model", {}), dict):
+        raise D3LVOInputError(record, "has no [run] table, or a [model] that is no table (d3lvo run writes both)")
     pairs = [(f"{k}", old["run"].get(k), current["run"].get(k)) for k in RESUME_KEYS]
     pairs.append(("model", old.get("model", {}).get("manifest_sha256"), current["model"].get("manifest_sha256")))
     for key, was, now in pairs:

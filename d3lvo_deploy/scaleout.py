@@ -84,7 +84,10 @@ def run_chunk(c: Chunk, model_dir: str, sc: SessionConfig) -> tuple[Chunk, np.nd
     seq = KittiSequence.open(c.seq_dir)
     odo = Odometry(model_dir, seq.calib, sc, model=_model(model_dir, sc))
     need_scan = odo.model.depth_input != "none"
-    poses = [odo.step(seq.image(i), seq.scan(i) if need_scan else None) for i in range(c.start, c.end)]
+    poses = []
+    for i in range(c.start, c.end):
+        odo.scan_source = f"{c.seq} frame {seq.frame_names[i]}'s scan"  # what a scan warning names
+        poses.append(odo.step(seq.image(i), seq.scan(i) if need_scan else None))
     return c, np.stack(poses)
 
 

@@ -99,6 +99,10 @@ class KittiSequence:
     def __len__(self) -> int:
         return len(self.frame_names)
 
+    @property
+    def calib_path(self) -> Path:
+        return self.root / "calib.txt"
+
     def image_path(self, i: int) -> Path:
         return self.root / "image_2" / f"{self.frame_names[i]}.png"
 
@@ -118,7 +122,8 @@ class KittiSequence:
         if self._gt is None:
             gt = read_poses(self.gt_path)
             if len(gt) != len(self):
-                raise D3LVOInputError(self.gt_path, f"{len(gt)} poses for a sequence of {len(self)} frames")
+                raise D3LVOInputError(self.gt_path, f"{len(gt)} poses for a sequence of {len(self)} frames "
+                                                    "(--gt names the file to score against)")
             self._gt = gt
         return self._gt
 

@@ -32,8 +32,11 @@ def check_solver_settings(settings: dict) -> None:
         if isinstance(default, bool):
             ok, what = isinstance(value, bool), "true or false"
         elif isinstance(default, (int, float)) or isinstance(default, tuple):
-            ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
-            what = "numbers separated by commas" if isinstance(default, tuple) else "a finite number"
+            whole = isinstance(default[0] if isinstance(default, tuple) and default else default, int)
+            ok = all(isinstance(v, int if whole else (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                     for v in values)
+            what = ("whole numbers separated by commas" if whole else "numbers separated by commas") \
+                if isinstance(default, tuple) else "a whole number" if whole else "a finite number"
         else:
             ok, what = True, ""
         if not ok:

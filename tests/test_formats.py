@@ -407,3 +407,15 @@ def test_a_scan_that_is_not_npy_names_the_file(tmp_path):
     bad.write_bytes(b"garbage")
     r = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "p.txt"), "--backend", "onnxruntime"])
     assert r.exit_code == 1 and f"{bad.name}: is not a .npy file (no NumPy header" in r.output, r.output
+
+
+def test_a_config_repeated_on_another_recording_leaves_the_old_ones_topics(tmp_path):
+    """A bag run's config names its topics; repeated on another recording (PATH given), those stay
+    with the bag; repeated on its own recording, they are its options, and a KITTI folder refuses them."""
+    shutil.copytree(TINY, tmp_path / "other")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[run]\npath = "{TINY}"\nimage_topic = "/cam"\nmax_dt = 0.1\nbackend = "onnxruntime"\n')
+    r = runner.invoke(app, ["run", str(tmp_path / "other"), "--config", str(cfg), "--out", str(tmp_path / "p.txt")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "q.txt")])
+    assert r.exit_code == 1 and "--image-topic, --max-dt are for ROS bags" in r.output, r.output

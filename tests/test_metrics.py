@@ -221,8 +221,13 @@ def test_timed_poses_pair_by_time_and_numbered_ones_by_number():
     other_clock = Trajectory(straight(20), np.arange(20), times[:20] + 1e9)  # epoch stamps against 0-based ones
     res = evaluate(gt, other_clock)
     assert res.ate == pytest.approx(0.0, abs=1e-12) and any("paired by order" in n for n in res.notes)
-    numbered = Trajectory(straight(50), np.arange(0, 100, 2))
-    res = evaluate(numbered, Trajectory(straight(50)[::5], np.arange(0, 100, 10)))
+    numbered = Trajectory(straight(50), np.arange(0, 100, 2), numbered=True)
+    res = evaluate(numbered, Trajectory(straight(50)[::5], np.arange(0, 100, 10), numbered=True))
     assert res.ate == pytest.approx(0.0, abs=1e-12)
     with pytest.raises(D3LVOInputError, match="frame 3 is not among the ground truth's numbered frames"):
-        evaluate(numbered, Trajectory(straight(2), np.array([0, 3])))
+        evaluate(numbered, Trajectory(straight(2), np.array([0, 3]), numbered=True))
+    # an estimate that does not number its frames pairs with them by order
+    assert evaluate(numbered, Trajectory.from_poses(straight(50))).ate == pytest.approx(0.0, abs=1e-12)
+    # a lower-rate TUM estimate has no poses on adjacent GT frames: RPE unavailable (JSON null), said so
+    res = evaluate(gt, Trajectory(straight(50)[::3], np.arange(17), times[::3]))
+    assert res.to_dict()["rpe_t"] is None and any("RPE unavailable" in n for n in res.notes)

@@ -1176,7 +1176,8 @@ def test_bad_solver_settings_are_one_clear_error():
     assert solver_settings(["pt_stop=1E-6", "pt_gate=-0.5", "pt_iters=9,9,9", "pt_affine=True"]) == \
         {"pt_stop": 1e-6, "pt_gate": -0.5, "pt_iters": (9, 9, 9), "pt_affine": True}
     for bad, words in (("pt_stop=abc", "pt_stop takes a finite number"), ("pt_stop=nan", "pt_stop takes a finite"),
-                       ("pt_iters=a,b", "pt_iters takes numbers separated by commas"),
+                       ("pt_iters=a,b", "pt_iters takes whole numbers separated by commas"),
+                       ("gn_iters=2.5", "gn_iters takes a whole number"),
                        ("pt_affine=3", "pt_affine takes true or false")):
         with pytest.raises(D3LVOInputError, match=words):
             solver_settings([bad])

@@ -421,7 +421,8 @@ def test_viz_writes_a_panel_per_chosen_frame(small_model, small_synth, tmp_path)
     # six frames and the default --viz-every 10: pictures of frames 10, 20, ..., so none, and it says so
     r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
                             "--viz", str(tmp_path / "none")])
-    assert r.exit_code == 0 and "this run has 6 frames: no picture" in r.output, r.output
+    assert r.exit_code == 0 and "--viz draws frames 10, 20, ... of a run (--viz-every 10), and this one has 6 frames: " \
+        "no picture" in r.output, r.output
     img = cv2.imread(str(tmp_path / "viz" / "000002.png"))
     h, w = 64, 224  # the test model's network view
     assert img.shape == (5 * (h + BAR), w, 3)  # camera, LiDAR, completion, flow, confidence

@@ -209,3 +209,8 @@ def test_overwrite_with_fewer_frames_leaves_none_of_the_old_ones(tmp_path):
     seq = KittiSequence.open(tmp_path / "s")  # 2 images, 2 scans, 2 times, 2 poses
     assert len(seq) == 2 and len(seq.ground_truth) == 2
     assert sorted(p.name for p in (tmp_path / "s" / "motion_2").iterdir()) == ["000000.png", "000001.png"]
+    # a folder this command did not render keeps its files, whatever their numbers
+    (tmp_path / "k" / "image_2").mkdir(parents=True)
+    (tmp_path / "k" / "image_2" / "000009.png").write_bytes(b"real data")
+    generate(tmp_path / "k", SynthConfig(frames=2, seed=1, width=320, height=96))
+    assert (tmp_path / "k" / "image_2" / "000009.png").read_bytes() == b"real data"

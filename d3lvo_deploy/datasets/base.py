@@ -25,6 +25,7 @@ class SensorSequence:
     frame_label: str  # the frame the poses are written in, said in the run's output
     gt: Trajectory | None = field(default=None, repr=False)
     gt_path: Path | None = None
+    calib_path: Path | None = None  # the calibration file read, where there was one (a bag's own: None)
 
     def __len__(self) -> int:
         return len(self.frame_names)

@@ -141,7 +141,7 @@ class FolderSequence(SensorSequence):
         label = (f"the camera of the calibration's K ({cal.keys[1]} takes the LiDAR there)" if cal.keys[0] == "K"
                  else f"cam0 (the frame of the calibration's {cal.keys[0]} and {cal.keys[1]})")
         seq = cls(root=root, calib=cal, frame_names=names, times=times, frame_label=label, image_files=img_files,
-                  scan_files=[by_stem[n] for n in names])
+                  scan_files=[by_stem[n] for n in names], calib_path=Path(calib))
         gt = gt if gt is not None else (root / "poses.txt" if (root / "poses.txt").is_file() else None)
         if gt is not None:
             seq.attach_ground_truth(gt)

@@ -198,7 +198,7 @@ class BagSequence(SensorSequence):
         times = np.array([im_t[i] for i, _ in pairs])
         seq = cls(root=path, calib=calib, frame_names=[f"{k:06d}" for k in range(len(pairs))], times=times - times[0],
                   frame_label=f"camera frame '{cam_frame}' of {img.topic} (x right, y down, z forward)",
-                  options=options)
+                  options=options, calib_path=options.calib)
         seq._reader, seq._conns = reader, (imgs, clouds)
         seq._log_times = [(im[i][0], cl[j][0]) for i, j in pairs]
         seq._rectify = rectify

@@ -215,7 +215,8 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
             raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
                                        f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
                                        "it again")
-    _drop_other_frames(out, cfg.frames)
+    if not resume and meta_path.is_file():  # --overwrite of a folder this command rendered
+        _drop_other_frames(out, cfg.frames)
     poses = make_poses(cfg)
     calib = kitti_calib(cfg.width, cfg.height)
     meta_path.write_text(json.dumps(meta, indent=2))
