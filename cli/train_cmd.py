@@ -178,6 +178,10 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         if replace(cfg, **{k: getattr(ck["config"], k) for k in carried}) == replace(ck["config"], **settings):
             cfg = replace(ck["config"], **settings)
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
+    try:
+        LossConfig(**file["loss"])
+    except ValueError as e:
+        raise D3LVOInputError(config, f"[loss] {e}") from None
     tc = TrainConfig(data=[str(d) for d in data], val=[str(v) for v in val], out=str(out), steps=steps, stop_at=stop_at,
                      batch_size=batch_size, lr=lr, val_every=val_every, ckpt_every=ckpt_every, seed=seed,
                      device=device, num_workers=workers, init=str(init) if init else None, precision=precision,

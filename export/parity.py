@@ -96,6 +96,8 @@ def _torch_model(ckpt: Path, manifest: dict):
 @torch.no_grad()
 def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | None = None, frames: int = 3,
                sc: SessionConfig = SessionConfig()) -> ParityReport:
+    if frames < 2:
+        raise D3LVOInputError(None, f"--frames must be at least 2 (one pair), not {frames}")
     ort_model = StageModel(onnx_dir, sc)
     model = _torch_model(Path(ckpt), ort_model.manifest)
     tmp = None

@@ -38,6 +38,10 @@ class LossConfig:
     # 0: the confidence learns from the motion masks alone (and training runs no solver)
     solver_pose_weight: float = 0.0
 
+    def __post_init__(self) -> None:
+        if self.balance_init not in ("data", "config"):
+            raise ValueError(f"balance_init must be data or config, not {self.balance_init!r}")
+
 
 def _canonical(q: torch.Tensor) -> torch.Tensor:
     q = q / q.norm(dim=-1, keepdim=True).clamp(min=1e-8)

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import ROOT, shared_path
 from typer.testing import CliRunner
 
 from cli.main import app
@@ -158,3 +158,14 @@ def test_help_paragraphs_wrap_at_the_terminal_width():
     r = runner.invoke(app, ["--help"], terminal_width=80)
     # the docstring breaks "synth" and "(KITTI-format" apart; rich, wrapping the paragraph, does not
     assert "synth (KITTI-format synthetic drives)" in r.output, r.output
+
+
+def test_parity_needs_a_pair_and_train_a_known_balance_start(tmp_path):
+    r = runner.invoke(app, ["parity", "--ckpt", str(tmp_path / "a.pt"), "--onnx", str(tmp_path), "--frames", "1"])
+    assert r.exit_code == 1 and "--frames must be at least 2 (one pair), not 1" in r.output, r.output
+    cfg = tmp_path / "t.toml"
+    cfg.write_text('[loss]\nbalance_init = "foo"\n')
+    data = ROOT / "tests" / "data" / "tiny_seq"
+    r = runner.invoke(app, ["train", "--config", str(cfg), "--data", str(data), "--out", str(tmp_path / "t.pt")])
+    assert r.exit_code == 1 and "[loss] balance_init must be data or config, not 'foo'" in r.output, r.output
+    assert not (tmp_path / "t.pt").exists()
