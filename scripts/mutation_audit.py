@@ -263,6 +263,19 @@ MUTATIONS = [
              "keep = keep | ((fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1]) & evidence)",
              "keep = keep | (fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1])",
              ("tests/test_point_solver.py::test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose",)),
+    Mutation("--resume continues poses of another start frame", "d3lvo_deploy/results.py",
+             '"max_dt", "method", "start")', '"max_dt", "method")',
+             ("tests/test_formats.py::test_resume_continues_only_the_run_its_config_records",)),
+    Mutation("eval pairs TUM poses by their order, not their times", "d3lvo_deploy/evaluation.py",
+             "    if est.timestamps is not None and gt.timestamps is not None:\n",
+             "    if False:\n",
+             ("tests/test_metrics.py::test_timed_poses_pair_by_time_and_numbered_ones_by_number",)),
+    Mutation("a calibration for images of another size runs without a word", "d3lvo_deploy/calib.py",
+             "    if not (0 <= cx < width and 0 <= cy < height):", "    if False:",
+             ("tests/test_calib.py::test_a_calibration_for_another_image_or_rig_is_caught",)),
+    Mutation("a KITTI line whose 3x3 block is no rotation is read as a pose", "d3lvo_deploy/poses.py",
+             "        if np.any(off > ROTATION_TOLERANCE):", "        if False:",
+             ("tests/test_poses_io.py::test_a_line_that_is_no_pose_is_named",)),
 ]
 
 
