@@ -150,6 +150,9 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         load_checkpoint(init)  # a bad file is one error before any work
     from models.train_config import model_config
 
+    if preset not in ("default", "small", "paper"):
+        raise D3LVOInputError(None, f"the preset (--preset, or preset in the config's [model]) must be one of "
+                                    f"default, small, paper, not {preset!r}")
     cfg = model_config(config, {**file["model"], "preset": preset}, mode=mode, completion=completion,
                        pose_head=pose_head, **settings)
     from d3lvo_deploy.sequence import KittiSequence

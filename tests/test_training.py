@@ -162,6 +162,7 @@ def test_checkpoint_errors(tmp_path):
     (["--lr", "-1"], "--lr must be a positive learning rate, not -1.0"),
     (["--device", "tpu"], "--device must be auto, cpu or cuda, not 'tpu'"),
     (["--out", "DIR"], "is a folder; --out names the checkpoint file to write"),
+    (["--preset", "tiny"], "the preset (--preset, or preset in the config's [model]) must be one of default, small"),
 ])
 def test_training_options_that_cannot_train_stop_before_any_work(small_synth, tmp_path, extra, words):
     from typer.testing import CliRunner
@@ -170,7 +171,8 @@ def test_training_options_that_cannot_train_stop_before_any_work(small_synth, tm
 
     extra = [str(tmp_path) if x == "DIR" else x for x in extra]
     out = [] if "--out" in extra else ["--out", str(tmp_path / "a.pt")]
-    r = CliRunner().invoke(app, ["train", "--data", str(small_synth), *out, "--preset", "small", *extra])
+    preset = [] if "--preset" in extra else ["--preset", "small"]
+    r = CliRunner().invoke(app, ["train", "--data", str(small_synth), *out, *preset, *extra])
     assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, r.output
     assert not (tmp_path / "a.pt").exists() and not (tmp_path / "a.toml").exists()
 
