@@ -192,12 +192,13 @@ def test_synthetic_drive_is_plausible():
     (dict(traffic=float("nan")), "--traffic must be 0 or more vehicles per 100 m, not nan"),
     (dict(traffic=float("inf")), "--traffic must be 0 or more vehicles per 100 m, not inf"),
     (dict(motion_start=50), "--motion-start is the first frame of --motion-from's trajectory"),
+    (dict(width=40000, height=40000), "--size 40000x40000 is too large: at most 4096 a side"),
 ])
 def test_settings_that_cannot_render_are_refused_before_any_folder(tmp_path, cfg, words):
     from d3lvo_deploy.errors import D3LVOInputError
 
     with pytest.raises(D3LVOInputError, match=re.escape(words)):
-        generate(tmp_path / "s", SynthConfig(frames=2, width=320, height=96, **cfg))
+        generate(tmp_path / "s", SynthConfig(frames=2, **{"width": 320, "height": 96, **cfg}))
     assert not (tmp_path / "s").exists()
 
 

@@ -175,6 +175,8 @@ def check_config(cfg: SynthConfig) -> None:
         raise D3LVOInputError(None, "--frames must be at least 2")
     if cfg.width < 64 or cfg.height < 32:
         raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too small")
+    if cfg.width > 4096 or cfg.height > 4096:  # a frame's float buffers would take gigabytes
+        raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too large: at most 4096 a side")
     if not (math.isfinite(cfg.traffic) and cfg.traffic >= 0):
         raise D3LVOInputError(None, f"--traffic must be 0 or more vehicles per 100 m, not {cfg.traffic}")
     if cfg.seed < 0:
