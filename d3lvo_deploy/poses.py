@@ -101,9 +101,10 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
         off = np.where(np.linalg.det(R) > 0, off, np.inf)  # a reflection is no rotation either
         if np.any(off > ROTATION_TOLERANCE):
             k = int(np.argmax(off > ROTATION_TOLERANCE))
-            raise D3LVOInputError(path, f"pose {k}: its 3x3 block is not a rotation (R R^T differs from I by {off[k]:.2g}, or "
-                                        "its determinant is negative); "
-                                        "a KITTI line is the 3x4 matrix [R | t], row by row")
+            why = "a reflection: its determinant is negative" if np.isinf(off[k]) else \
+                f"R R^T differs from I by {off[k]:.2g}"
+            raise D3LVOInputError(path, f"pose {k}: its 3x3 block is not a rotation ({why}); a KITTI line is the 3x4 "
+                                        "matrix [R | t], row by row")
     return Trajectory(poses, ids, stamps, numbered=fmt == "kitti_indexed")
 
 

@@ -62,7 +62,7 @@ def test_indexed_rows_with_skipped_frames():
         # lines that are no pose: not a rotation (a reflection neither), a zero quaternion, time going back
         ("1 2 3 4 5 6 7 8 9 10 11 12\n", "pose 0: its 3x3 block is not a rotation"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n5 5 5 5 5 5 5 5 5 5 5 5\n", "pose 1: its 3x3 block is not a rotation"),
-        ("-1 0 0 0 0 1 0 0 0 0 1 0\n", "pose 0: its 3x3 block is not a rotation"),
+        ("-1 0 0 0 0 1 0 0 0 0 1 0\n", "pose 0: its 3x3 block is not a rotation (a reflection"),
         ("0.1 0 0 0 0 0 0 1\n0.2 0 0 0 0 0 0 0\n", "pose 1: its quaternion qx qy qz qw is all zero"),
         ("0.2 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 1\n", "pose 1: its time does not come after"),
     ],
