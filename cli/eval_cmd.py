@@ -58,9 +58,10 @@ def eval_command(
     est: list[Path] = typer.Option(..., "--est", help="Estimated trajectory file, or a folder of NN.txt files; "
                                    "give --est several times to compare methods in one table."),
     align: str = typer.Option("none", "--align", help=f"Alignment before scoring: {'|'.join(ALIGN_MODES)}."),
-    plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) "
-                                     "trajectory plot here: .png (the default suffix), .pdf, .svg or .jpg; for folders "
-                                     "one per sequence, STEM_SEQUENCE.png (cmp_09.png for --plot cmp.png)."),
+    plot: Path | None = typer.Option(None, "--plot", help="Write a top-view (x-z) trajectory plot here: .png "
+                                     "(the default suffix) or any kind matplotlib writes (.pdf, .svg, .jpg, ...); "
+                                     "for folders one per sequence, STEM_SEQUENCE.png (cmp_09.png for --plot "
+                                     "cmp.png)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Score trajectories with the KITTI devkit protocol (t_rel, r_rel) plus ATE and RPE.

@@ -212,10 +212,18 @@ def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_t
     return open_sequence(path if path is not None else seq_dir, fmt, gt=gt, calib=calib, bag=bag)
 
 
-def _check_ground_truth(seq) -> None:
+def _check_ground_truth(seq, given: bool) -> None:
     """A ground truth that cannot score the run (missing, unreadable, another length) is one error
-    before the first frame, not after the last."""
-    seq.ground_truth  # noqa: B018 - reads and checks it (one pose per frame) where the recording has one
+    before the first frame, not after the last, where --gt named it; one found beside the recording
+    (a `poses.txt` of the full drive beside some of its frames) is a warning, and the run goes on
+    unscored."""
+    try:
+        seq.ground_truth  # noqa: B018 - reads and checks it (one pose per frame) where the recording has one
+    except D3LVOInputError as e:
+        if given or not hasattr(seq, "gt_path"):
+            raise
+        console.print(f"[yellow]warning[/] {escape(str(e))}; the run goes on without scoring", highlight=False)
+        seq.gt_path = None
 
 
 def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
@@ -252,7 +260,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                                     "(results/latest is the newest)")
     seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
                           max_dt)
-    _check_ground_truth(seq)
+    _check_ground_truth(seq, given=gt is not None)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision, classical_beside=classical_beside)
     sc.check()

@@ -105,6 +105,32 @@ def _path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
+def _nearest_stamps(gt: Trajectory, est: Trajectory) -> tuple[np.ndarray, np.ndarray, float]:
+    """Each estimate stamp's nearest ground-truth pose, whether it lies within half the ground
+    truth's median interval, and that tolerance."""
+    pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, max(len(gt) - 1, 1))
+    pos = np.where(np.abs(gt.timestamps[pos - 1] - est.timestamps) <= np.abs(gt.timestamps[pos] - est.timestamps),
+                   pos - 1, pos)
+    tol = 0.5 * float(np.median(np.diff(gt.timestamps))) if len(gt) > 1 else 0.0
+    return pos, np.abs(gt.timestamps[pos] - est.timestamps) <= tol, tol
+
+
+def timed_overlap(gt: Trajectory, est: Trajectory) -> tuple[Trajectory, str | None]:
+    """The estimate's poses that a timed ground truth has a pose for, and a note naming how many it
+    has none for (a ground truth with gaps, or one that starts later): they cannot be scored, and
+    are left out as evo's association leaves them out."""
+    if est.timestamps is None or gt.timestamps is None or len(gt) < 2:
+        return est, None
+    if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
+        return est, None  # another clock: paired by order (`gt_positions`)
+    _, near, tol = _nearest_stamps(gt, est)
+    if near.all():
+        return est, None
+    keep = np.flatnonzero(near)
+    note = (f"{len(near) - len(keep)} of {len(near)} poses have no ground-truth pose within {tol:.3g} s: left out")
+    return Trajectory(est.poses[keep], np.arange(len(keep)), est.timestamps[keep]), note
+
+
 def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, str | None]:
     """Where each estimate pose sits in the ground truth, and a note on how they were paired: by
     time where both carry stamps on one clock (TUM: the nearest GT stamp, within half the GT's
@@ -114,12 +140,9 @@ def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
         if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
             return _by_order(gt, est, est_name), ("the estimate's times do not overlap the ground truth's (another "
                                                   "clock?): paired by order")
-        pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, max(len(gt) - 1, 1))
-        pos = np.where(np.abs(gt.timestamps[pos - 1] - est.timestamps) <= np.abs(gt.timestamps[pos] - est.timestamps),
-                       pos - 1, pos)
-        tol = 0.5 * float(np.median(np.diff(gt.timestamps))) if len(gt) > 1 else 0.0
-        far = np.abs(gt.timestamps[pos] - est.timestamps) > tol
-        if far.any():
+        pos, near, tol = _nearest_stamps(gt, est)
+        far = ~near
+        if far.any():  # `timed_overlap` has left them out before
             k = int(np.argmax(far))
             raise D3LVOInputError(est_name, f"pose {k} at t = {est.timestamps[k]:.6f} s has no ground-truth pose within "
                                             f"{tol:.3g} s (the nearest is at {gt.timestamps[pos[k]]:.6f} s)")
@@ -167,9 +190,12 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
 
 def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "",
              est_name: str | Path = "estimate", gt_name: str | Path | None = None) -> SequenceResult:
+    est, left_out = timed_overlap(gt, est)
     if len(est) < 2 or len(gt) < 2:
-        raise D3LVOInputError(est_name if len(est) < 2 else gt_name, "need at least 2 poses to evaluate")
+        raise D3LVOInputError(est_name if len(est) < 2 else gt_name, "need at least 2 poses to evaluate"
+                              + (f" ({left_out})" if left_out else ""))
     ids, valid, notes = match_frames(gt, est, est_name)
+    notes = ([left_out] if left_out else []) + notes
     last = int(ids[-1])
     gt_poses = gt.poses[: last + 1]
     valid = valid[: last + 1]

@@ -8,17 +8,17 @@ import numpy as np
 
 from .errors import D3LVOInputError
 
-PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg")
-
-
 def plot_path(path: Path) -> Path:
-    """Where `--plot PATH` writes: PATH.png without a suffix (and said so), else a kind matplotlib
+    """Where `--plot PATH` writes: PATH.png without a suffix (and said so), else any kind matplotlib
     writes, or one error naming the path before any work."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     path = Path(path)
     if not path.suffix:
         return path.with_name(path.name + ".png")
-    if path.suffix.lower() not in PLOT_SUFFIXES:
-        raise D3LVOInputError(path, f"--plot writes {', '.join(PLOT_SUFFIXES)}; not {path.suffix}")
+    kinds = sorted(FigureCanvasAgg.get_supported_filetypes())
+    if path.suffix.lower().lstrip(".") not in kinds:
+        raise D3LVOInputError(path, f"--plot writes {', '.join('.' + k for k in kinds)}; not {path.suffix}")
     return path
 
 

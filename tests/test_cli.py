@@ -35,7 +35,9 @@ def test_eval_json_and_plot(tmp_path):
     assert r.exit_code == 0 and f"plot written to {tmp_path / 'cmp.png'}" in r.output, r.output
     assert (tmp_path / "cmp.png").read_bytes()[:4] == b"\x89PNG"
     r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--plot", str(tmp_path / "p.xyz")])
-    assert r.exit_code == 1 and "--plot writes .png, .pdf, .svg, .jpg; not .xyz" in r.output, r.output
+    assert r.exit_code == 1 and "--plot writes" in r.output and ".jpeg" in r.output and "not .xyz" in r.output, r.output
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--plot", str(tmp_path / "p.jpeg")])
+    assert r.exit_code == 0 and (tmp_path / "p.jpeg").read_bytes()[:2] == b"\xff\xd8", r.output  # a JPEG
 
 
 def test_eval_folders(tmp_path):

@@ -353,11 +353,18 @@ def test_options_that_cannot_work_together_or_score_stop_before_any_frame(tmp_pa
 
 
 def test_ground_truth_of_another_length_stops_before_the_first_frame(tmp_path):
+    """Named with --gt: an error before any frame. Found beside the frames (a full drive's poses.txt
+    beside some of its frames): a warning, and the run goes on unscored."""
     gt = tmp_path / "gt.txt"
-    gt.write_text("".join(" ".join(["1 0 0 0 0 1 0 0 0 0 1 0"]) + "\n" for _ in range(5)))
+    gt.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5)
     r = runner.invoke(app, ["run", str(TINY), "--gt", str(gt), "--out", str(tmp_path / "p.txt")])
     assert r.exit_code == 1 and "5 poses for a sequence of 3 frames" in r.output, r.output
     assert not (tmp_path / "p.txt").exists()
+    shutil.copytree(TINY, tmp_path / "s")
+    shutil.copy(gt, tmp_path / "s" / "poses.txt")
+    r = runner.invoke(app, ["run", str(tmp_path / "s"), "--out", str(tmp_path / "p.txt"), "--backend", "onnxruntime"])
+    assert r.exit_code == 0 and "the run goes on without scoring" in r.output and "no metrics" in r.output, r.output
+    assert len((tmp_path / "p.txt").read_text().splitlines()) == 3
 
 
 @pytest.mark.parametrize("line, words", [('threads = "two"', "[run] threads = 'two': expected a whole number"),

@@ -59,10 +59,12 @@ def test_indexed_rows_with_skipped_frames():
         ("1 2 3 4 5 6 7 8 9 10 11 nan\n", "NaN"),
         ("1 2 3 4 5 6 7 8 9 10 11 x\n", "line 1"),
         ("3 1 0 0 0 0 1 0 0 0 0 1 0\n2 1 0 0 0 0 1 0 0 0 0 1 0\n", "increasing"),
-        # lines that are no pose: not a rotation (a reflection neither), a zero quaternion, time going back
+        # lines that are no pose: not a rotation (a reflection or zeros neither), a zero quaternion, time
+        # going back; a rotation written with two decimals is one
         ("1 2 3 4 5 6 7 8 9 10 11 12\n", "pose 0: its 3x3 block is not a rotation"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n5 5 5 5 5 5 5 5 5 5 5 5\n", "pose 1: its 3x3 block is not a rotation"),
-        ("-1 0 0 0 0 1 0 0 0 0 1 0\n", "pose 0: its 3x3 block is not a rotation (a reflection"),
+        ("-1 0 0 0 0 1 0 0 0 0 1 0\n", "pose 0: its 3x3 block is not a rotation (its determinant is -1)"),
+        ("0 0 0 1 0 0 0 2 0 0 0 3\n", "pose 0: its 3x3 block is not a rotation (its determinant is 0)"),
         ("0.1 0 0 0 0 0 0 1\n0.2 0 0 0 0 0 0 0\n", "pose 1: its quaternion qx qy qz qw is all zero"),
         ("0.2 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 1\n", "pose 1: its time does not come after"),
     ],
@@ -73,3 +75,13 @@ def test_bad_files_name_the_file(tmp_path, text, words):
     with pytest.raises(D3LVOInputError) as e:
         read_poses(f)
     assert "bad.txt" in str(e.value) and words in str(e.value)
+
+
+def test_a_rotation_written_with_two_decimals_is_read(tmp_path):
+    """Published trajectories are sometimes rounded: 37 degrees about y to two decimals puts R R^T
+    about 0.01 from I, a rotation all the same."""
+    a = np.radians(37.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    f = tmp_path / "rounded.txt"
+    f.write_text(" ".join(f"{v:.2f}" for v in np.hstack([R, [[1.0], [2.0], [3.0]]]).reshape(-1)) + "\n")
+    np.testing.assert_allclose(read_poses(f).poses[0][:3, :3], np.round(R, 2))
