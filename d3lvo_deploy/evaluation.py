@@ -134,8 +134,9 @@ def timed_overlap(gt: Trajectory, est: Trajectory) -> tuple[Trajectory, str | No
 def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, str | None]:
     """Where each estimate pose sits in the ground truth, and a note on how they were paired: by
     time where both carry stamps on one clock (TUM: the nearest GT stamp, within half the GT's
-    median interval), by frame number where the ground truth numbers its frames (13 columns), else
-    by order."""
+    median interval), by frame number where both number their frames (13 columns), else by order
+    (an estimate's own frame numbers count as positions in a ground truth that does not number
+    its frames)."""
     if est.timestamps is not None and gt.timestamps is not None:
         if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
             return _by_order(gt, est, est_name), ("the estimate's times do not overlap the ground truth's (another "
