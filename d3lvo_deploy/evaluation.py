@@ -213,7 +213,7 @@ def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "
     full = np.tile(np.eye(4), (len(gt_rel), 1, 1))
     full[ids] = aligned
     rows = metrics.segment_errors(gt_rel, full, valid)
-    path_len = float(metrics.trajectory_distances(gt_rel)[-1])
+    path_len = float(metrics.trajectory_distances(gt_rel[first:])[-1])  # the stretch the estimate covers
     t_rel, r_rel = metrics.rel_errors(rows)
     if len(rows) == 0:
         notes.append(

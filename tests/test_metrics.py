@@ -110,6 +110,7 @@ def test_estimate_starting_late_is_anchored_at_its_first_frame(seq, start):
     assert res.segments == len(errs) > 0
     assert res.t_rel == pytest.approx(np.mean(errs) * 100, rel=1e-5)
     assert res.r_rel == pytest.approx(0.0, abs=1e-6)
+    assert res.path_length_m == pytest.approx(dist[-1] - dist[start], rel=1e-6)  # the stretch it covers
     d = rel[:, :3, 3]
     assert res.ate == pytest.approx(0.02 * np.sqrt((d ** 2).sum(1).mean()), rel=1e-5)
 
