@@ -105,58 +105,32 @@ def _path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
-def _nearest_stamps(gt: Trajectory, est: Trajectory) -> tuple[np.ndarray, np.ndarray, float]:
-    """Each estimate stamp's nearest ground-truth pose, whether it lies within half the ground
-    truth's median interval, and that tolerance."""
-    pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, max(len(gt) - 1, 1))
+def pair_by_time(gt: Trajectory, est: Trajectory) -> tuple[Trajectory, np.ndarray | None, str | None]:
+    """Where both files carry stamps on one clock (TUM), each estimate pose's nearest ground-truth
+    pose, within half the ground truth's median interval: (the estimate's poses that have one,
+    their GT positions, a note counting those left out, as evo's association leaves them out).
+    Times on another clock altogether (not overlapping) pair by order, with a note; untimed files,
+    by order or frame number (`_by_order`): positions None."""
+    if est.timestamps is None or gt.timestamps is None or len(gt) < 2:
+        return est, None, None
+    if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
+        return est, None, "the estimate's times do not overlap the ground truth's (another clock?): paired by order"
+    pos = np.clip(np.searchsorted(gt.timestamps, est.timestamps), 1, len(gt) - 1)
     pos = np.where(np.abs(gt.timestamps[pos - 1] - est.timestamps) <= np.abs(gt.timestamps[pos] - est.timestamps),
                    pos - 1, pos)
-    tol = 0.5 * float(np.median(np.diff(gt.timestamps))) if len(gt) > 1 else 0.0
-    return pos, np.abs(gt.timestamps[pos] - est.timestamps) <= tol, tol
-
-
-def timed_overlap(gt: Trajectory, est: Trajectory) -> tuple[Trajectory, str | None]:
-    """The estimate's poses that a timed ground truth has a pose for, and a note naming how many it
-    has none for (a ground truth with gaps, or one that starts later): they cannot be scored, and
-    are left out as evo's association leaves them out."""
-    if est.timestamps is None or gt.timestamps is None or len(gt) < 2:
-        return est, None
-    if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
-        return est, None  # another clock: paired by order (`gt_positions`)
-    _, near, tol = _nearest_stamps(gt, est)
+    tol = 0.5 * float(np.median(np.diff(gt.timestamps)))
+    near = np.abs(gt.timestamps[pos] - est.timestamps) <= tol
     if near.all():
-        return est, None
+        return est, pos, None
     keep = np.flatnonzero(near)
-    note = (f"{len(near) - len(keep)} of {len(near)} poses have no ground-truth pose within {tol:.3g} s: left out")
-    return Trajectory(est.poses[keep], np.arange(len(keep)), est.timestamps[keep]), note
-
-
-def gt_positions(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, str | None]:
-    """Where each estimate pose sits in the ground truth, and a note on how they were paired: by
-    time where both carry stamps on one clock (TUM: the nearest GT stamp, within half the GT's
-    median interval), by frame number where both number their frames (13 columns), else by order
-    (an estimate's own frame numbers count as positions in a ground truth that does not number
-    its frames)."""
-    if est.timestamps is not None and gt.timestamps is not None:
-        if est.timestamps[-1] < gt.timestamps[0] or est.timestamps[0] > gt.timestamps[-1]:
-            return _by_order(gt, est, est_name), ("the estimate's times do not overlap the ground truth's (another "
-                                                  "clock?): paired by order")
-        pos, near, tol = _nearest_stamps(gt, est)
-        far = ~near
-        if far.any():  # `timed_overlap` has left them out before
-            k = int(np.argmax(far))
-            raise D3LVOInputError(est_name, f"pose {k} at t = {est.timestamps[k]:.6f} s has no ground-truth pose within "
-                                            f"{tol:.3g} s (the nearest is at {gt.timestamps[pos[k]]:.6f} s)")
-        if np.any(np.diff(pos) <= 0):
-            k = int(np.argmax(np.diff(pos) <= 0))
-            raise D3LVOInputError(est_name, f"poses {k} and {k + 1} (t = {est.timestamps[k]:.6f}, "
-                                            f"{est.timestamps[k + 1]:.6f} s) fall on the same ground-truth pose: "
-                                            "the estimate is faster than the ground truth")
-        return pos, None
-    return _by_order(gt, est, est_name), None
+    note = f"{len(near) - len(keep)} of {len(near)} poses have no ground-truth pose within {tol:.3g} s: left out"
+    return Trajectory(est.poses[keep], np.arange(len(keep)), est.timestamps[keep]), pos[keep], note
 
 
 def _by_order(gt: Trajectory, est: Trajectory, est_name: str | Path) -> np.ndarray:
+    """GT positions by frame number where both files number their frames (13 columns), else by
+    order (an estimate's own frame numbers count as positions in a ground truth that does not
+    number its frames)."""
     ids = est.frame_ids
     if ids.min(initial=0) < 0:
         raise D3LVOInputError(est_name, f"frame index {int(ids.min())} is negative")
@@ -172,14 +146,19 @@ def _by_order(gt: Trajectory, est: Trajectory, est_name: str | Path) -> np.ndarr
     return ids
 
 
-def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate") -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Pair estimate poses with GT frames; returns (GT position of each estimate pose, valid mask
-    over GT, notes)."""
+def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estimate",
+                 timed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Pair estimate poses with GT frames (at `timed`, the positions `pair_by_time` found, else
+    `_by_order`); returns (GT position of each estimate pose, valid mask over GT, notes)."""
     notes: list[str] = []
     if len(est) > len(gt):
         raise D3LVOInputError(est_name, f"{len(est)} poses but the ground truth has only {len(gt)}")
-    ids, how = gt_positions(gt, est, est_name)
-    notes += [how] if how else []
+    if timed is not None and np.any(np.diff(timed) <= 0):
+        k = int(np.argmax(np.diff(timed) <= 0))
+        raise D3LVOInputError(est_name, f"poses {k} and {k + 1} (t = {est.timestamps[k]:.6f}, "
+                                        f"{est.timestamps[k + 1]:.6f} s) fall on the same ground-truth pose: "
+                                        "the estimate is faster than the ground truth")
+    ids = timed if timed is not None else _by_order(gt, est, est_name)
     if len(est) < len(gt) and np.array_equal(ids, np.arange(len(est))):
         notes.append(f"estimate has {len(est)} of {len(gt)} poses: evaluated on the first {len(est)} frames")
     elif len(est) < len(gt):
@@ -191,12 +170,12 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
 
 def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "",
              est_name: str | Path = "estimate", gt_name: str | Path | None = None) -> SequenceResult:
-    est, left_out = timed_overlap(gt, est)
+    est, timed, how = pair_by_time(gt, est)
     if len(est) < 2 or len(gt) < 2:
         raise D3LVOInputError(est_name if len(est) < 2 else gt_name, "need at least 2 poses to evaluate"
-                              + (f" ({left_out})" if left_out else ""))
-    ids, valid, notes = match_frames(gt, est, est_name)
-    notes = ([left_out] if left_out else []) + notes
+                              + (f" ({how})" if how and timed is not None else ""))
+    ids, valid, notes = match_frames(gt, est, est_name, timed)
+    notes = ([how] if how else []) + notes
     last = int(ids[-1])
     gt_poses = gt.poses[: last + 1]
     valid = valid[: last + 1]
