@@ -168,18 +168,12 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
 def _config_value(config: Path, key: str, value, hint):
     """A [run] value as the option's type (a path from its string), or one error naming the key:
     a hand-edited `threads = "two"` would otherwise fail deep inside the run."""
+    from d3lvo_deploy.config_values import converted, describe, fits
+
     kind = next((t for t in typing.get_args(hint) if t is not type(None)), hint)
-    if kind is bool:
-        ok, what = isinstance(value, bool), "true or false"
-    elif kind is int:
-        ok, what = isinstance(value, int) and not isinstance(value, bool), "a whole number"
-    elif kind is float:
-        ok, what = isinstance(value, (int, float)) and not isinstance(value, bool), "a number"
-    else:
-        ok, what = isinstance(value, str), "a quoted string" + (" (a path)" if kind is Path else "")
-    if not ok:
-        raise D3LVOInputError(config, f"[run] {key} = {value!r}: expected {what}")
-    return Path(value) if kind is Path else float(value) if kind is float else value
+    if not fits(value, kind):
+        raise D3LVOInputError(config, f"[run] {key} = {value!r}: expected {describe(kind)}")
+    return converted(value, kind)
 
 
 def _check_model(config: Path, run: dict, opts: dict) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, fields
 
 INPUT_MODES = ("rgb", "rgb_sparse", "rgb_completion")
@@ -20,6 +19,7 @@ SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool
 def check_solver_settings(settings: dict) -> None:
     """Refuse `--set` keys that are not solver settings (they would change weights' meaning), and
     values of another kind than the setting's (a word for a number); ranges are `D3LVOConfig`'s."""
+    from d3lvo_deploy.config_values import describe, fits
     from d3lvo_deploy.errors import D3LVOInputError
 
     bad = sorted(set(settings) - set(SOLVER_KEYS))
@@ -28,19 +28,11 @@ def check_solver_settings(settings: dict) -> None:
     defaults = D3LVOConfig()
     for key, value in settings.items():
         default = getattr(defaults, key)
-        values = value if isinstance(value, tuple) else (value,)
-        if isinstance(default, bool):
-            ok, what = isinstance(value, bool), "true or false"
-        elif isinstance(default, (int, float)) or isinstance(default, tuple):
-            whole = isinstance(default[0] if isinstance(default, tuple) and default else default, int)
-            ok = all(isinstance(v, int if whole else (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                     for v in values)
-            what = ("whole numbers separated by commas" if whole else "numbers separated by commas") \
-                if isinstance(default, tuple) else "a whole number" if whole else "a finite number"
-        else:
-            ok, what = True, ""
-        if not ok:
-            joined = ",".join(str(v) for v in values)
+        # one number for a per-level setting: `D3LVOConfig` then says how many it takes
+        one = isinstance(default, tuple) and not isinstance(value, tuple)
+        if not fits((value,) if one else value, default):
+            what = describe(default) + (" separated by commas" if isinstance(default, tuple) else "")
+            joined = ",".join(str(v) for v in value) if isinstance(value, tuple) else str(value)
             raise D3LVOInputError(None, f"--set {key}={joined}: {key} takes {what}")
 
 

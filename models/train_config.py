@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import MISSING, asdict, fields
 from pathlib import Path
 
+from d3lvo_deploy.config_values import converted, describe, fits
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.results import read_toml, to_toml
 
@@ -37,33 +38,16 @@ def _defaults(cls) -> dict:
 
 
 def _check_type(path: Path, table: str, key: str, value, default) -> object:
-    """A value of the default's kind (ints pass for floats; lists for tuples), else one error."""
+    """A value of the default's kind (`config_values.fits`), else one error naming the key."""
     if default is None or value is None:
         return value
-    if isinstance(default, bool):
-        ok = isinstance(value, bool)
-    elif isinstance(default, float):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
-    elif isinstance(default, int):
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif isinstance(default, (tuple, list)):
-        # elements of the default's kind: numbers for widths and weights, text (paths, names) where
-        # the default is empty
-        like = default[0] if default else ""
-        ok = isinstance(value, list) and all(
-            isinstance(v, str) if isinstance(like, str) else
-            isinstance(v, (int, float)) and not isinstance(v, bool) and (isinstance(like, float) or isinstance(v, int))
-            for v in value)
-        value = tuple(value) if ok and isinstance(default, tuple) else value
-    else:
-        ok = isinstance(value, type(default))
-    if not ok:
+    if not fits(value, default):
         if isinstance(default, (tuple, list)):
-            what = "a list of quoted strings" if isinstance(default[0] if default else "", str) else "a list of numbers"
-            raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be {what}, like {list(default) or ['a', 'b']!r}")
-        raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be like {default!r}")
-    return value
+            example = list(default) or ["a", "b"]
+            raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be a list of {describe(default)}, "
+                                        f"like {example!r}")
+        raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be {describe(default)}, like {default!r}")
+    return converted(value, default)
 
 
 def read_train_config(path: str | Path) -> dict[str, dict]:

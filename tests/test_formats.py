@@ -378,6 +378,23 @@ def test_a_config_value_of_the_wrong_type_names_its_key(tmp_path, line, words):
     assert r.exit_code == 1 and words in r.output and str(cfg) in r.output and "Traceback" not in r.output, r.output
 
 
+@pytest.mark.parametrize("value, like, ok", [
+    (True, bool, True), (1, bool, False), (3, 0, True), (3.0, 0, False), (True, 0, False),
+    (3, 0.5, True), (float("nan"), 0.5, False), (float("inf"), float, False), ("x", Path, True), (3, Path, False),
+    ([16, 32], (8, 16), True), ([1.5], (8,), False), ([1, 2.5], (0.5,), True), (["a"], [], True), ([1], [], False)])
+def test_config_values_fit_the_kind_of_their_default(value, like, ok):
+    """One rule for `run --config`, training configs and `--set`: the default's kind, numbers
+    finite, ints standing for floats but not the other way round, list elements like the
+    default's first (strings where it is empty)."""
+    from d3lvo_deploy.config_values import converted, fits
+
+    assert fits(value, like) is ok
+    if ok and isinstance(like, tuple):
+        assert converted(value, like) == tuple(value)
+    if ok and like == 0.5:
+        assert type(converted(value, like)) is float
+
+
 def test_empty_kitti_folders_say_what_is_missing(tmp_path):
     for d in ("image_2", "velodyne"):
         (tmp_path / "s" / d).mkdir(parents=True)
