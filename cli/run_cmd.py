@@ -114,8 +114,8 @@ def run_command(
                                       "\\[rerun] extra); a relative path lies inside the results folder."),
     gt: Path | None = typer.Option(None, "--gt", help="Ground truth to score against (default: found beside the "
                                    "sequence, or a KITTI raw drive's OXTS)."),
-    plot: Path | None = typer.Option(None, "--plot", help="With --out: write a trajectory PNG (a results folder "
-                                     "gets trajectory.png when matplotlib is installed)."),
+    plot: Path | None = typer.Option(None, "--plot", help="Write the trajectory's top view to this PNG (default: a results "
+                                     "folder's trajectory.png, when matplotlib is installed)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
     threads: int = typer.Option(0, "--threads", help="Inference threads (0: OMP_NUM_THREADS where set, else all cores)."),
     backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the \\[openvino] extra) | auto "
@@ -458,7 +458,9 @@ def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, 
         written.append(folder.path / "config.toml")
         if plot is not None:
             written.append(plot)
-        console.print(f"results in {folder.path}: " + ", ".join(p.name for p in written if p.exists())
+        # a --plot elsewhere by its path: the folder does not hold it
+        named = [p.name if p.parent.resolve() == folder.path.resolve() else str(p) for p in written if p.exists()]
+        console.print(f"results in {folder.path}: " + ", ".join(named)
                       + _asked(folder), highlight=False)
 
 

@@ -290,6 +290,18 @@ def test_kitti_format_without_a_scan_folder_is_one_error(tmp_path):
     assert r.exit_code == 1 and "velodyne" in r.output and "missing" in r.output
 
 
+def test_format_names_are_case_blind_and_a_plot_elsewhere_is_named_by_its_path(tmp_path):
+    """--format KITTI is kitti (as --pose-format TUM is tum); a --plot outside the results folder
+    is listed with its path, not as if the folder held it."""
+    pytest.importorskip("matplotlib")
+    r = runner.invoke(app, ["run", str(TINY), "--format", "KITTI", "--backend", "onnxruntime",
+                            "--out-dir", str(tmp_path / "r"), "--plot", str(tmp_path / "top.png")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "top.png").is_file() and not (tmp_path / "r" / "top.png").exists()
+    listed = r.output.split("results in", 1)[1].replace("\n", "")
+    assert str(tmp_path / "top.png") in listed and ", top.png" not in listed, r.output
+
+
 def test_runs_started_together_get_their_own_folders_and_a_refused_run_none(tmp_path, monkeypatch):
     from d3lvo_deploy.results import default_folder
 

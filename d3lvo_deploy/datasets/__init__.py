@@ -53,6 +53,7 @@ def open_sequence(path: str | Path, fmt: str = "auto", gt: str | Path | None = N
     """The recording at `path` as a sequence the pipeline runs on (KittiSequence or a SensorSequence).
     `gt`: a trajectory file to score against; `calib`: a calibration file for folders and bags."""
     path = Path(path)
+    fmt = fmt.lower() if isinstance(fmt, str) else fmt  # as --pose-format: KITTI is kitti
     fmt = guess_format(path) if fmt in ("auto", None) else fmt
     if fmt not in FORMATS:
         raise D3LVOInputError(None, f"--format must be auto or one of {', '.join(FORMATS)}, not {fmt!r}")
