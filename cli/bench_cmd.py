@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -175,12 +176,21 @@ def bench_command(
         raise D3LVOInputError(None, "--ov-precision applies to OpenVINO: add openvino to --backend")
     for b in BACKENDS if engines is None else engines:
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
+    # 0: OMP_NUM_THREADS where set, else every core; the table and --json say how many that is
+    threads = SessionConfig(threads=threads).engine_threads or (os.cpu_count() or 1)
     if engines is not None and "openvino" in engines:
         from d3lvo_deploy.extras import require
 
         require("openvino", what="--backend openvino")
     if profile is not None and engines is not None and "onnxruntime" not in engines:
         raise D3LVOInputError(profile, "--profile writes onnxruntime profiles: include --backend onnxruntime")
+    if profile is not None:  # before a minute of benching, not at the first session
+        if profile.exists() and not profile.is_dir():
+            raise D3LVOInputError(profile, "is a file; --profile names a folder for the profiles")
+        try:
+            profile.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise D3LVOInputError(profile, f"cannot create the profile folder ({e.strerror})") from None
     if ckpt is not None or default_network or torch_compile:
         from d3lvo_deploy.extras import require
 
@@ -232,7 +242,9 @@ def bench_command(
         manifest = load_manifest(onnx)
         if other is not None and (other["input"]["width"], other["input"]["height"]) != (
                 manifest["input"]["width"], manifest["input"]["height"]):
-            raise D3LVOInputError(against, "--against needs an export of the model's input size")
+            raise D3LVOInputError(against, f"is an export for {other['input']['width']}x{other['input']['height']} "
+                                           f"input; --against needs one of the model's "
+                                           f"{manifest['input']['width']}x{manifest['input']['height']}")
         gflops = _stage_gflops(onnx, manifest)
         seq = KittiSequence.open(seq_dir or _bench_frames(tmp))
         with console.status("measuring the GEMM peak"):

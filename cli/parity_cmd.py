@@ -19,7 +19,8 @@ def parity_command(
                                         "in ../shared/data, else a synthetic sequence)."),
     frames: int = typer.Option(3, "--frames", help="Frames to run (pairs = frames - 1)."),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers and a pass flag as JSON."),
-    backend: str = typer.Option("onnxruntime", "--backend", help="Engine to check: onnxruntime | openvino."),
+    backend: str = typer.Option("onnxruntime", "--backend", help="Engine to check: onnxruntime | openvino | auto (OpenVINO where "
+                                 "installed; the output names the one checked)."),
     ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 is "
                                      "reported, not expected to meet the fp32 tolerances)."),
 ) -> None:
@@ -36,11 +37,13 @@ def parity_command(
 
     sc = SessionConfig(backend=backend, ov_precision=ov_precision)
     sc.check()
+    sc = sc.resolved()  # the engine checked, by name: a pass on "auto" would not say which
+    engine = sc.backend + (" (auto)" if backend == "auto" else "")
     rep = run_parity(ckpt, onnx, seq_dir, frames, sc)
     if as_json:
-        typer.echo(json.dumps({**rep.to_dict(), "backend": backend}, indent=2))
+        typer.echo(json.dumps({**rep.to_dict(), "backend": sc.backend}, indent=2))
     else:
-        t = Table(title=f"torch vs {backend} on {rep.frames} frames of {rep.data}")
+        t = Table(title=f"torch vs {engine} on {rep.frames} frames of {rep.data}")
         for c in ("stage", "output", "max abs", "max rel", f"ok (<= {STAGE_TOL:g} x max(1,|ref|))"):
             t.add_column(c)
         for stage, outs in rep.stages.items():

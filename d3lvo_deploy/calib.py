@@ -24,6 +24,27 @@ class Calib:
     P0: np.ndarray | None = None
     keys: tuple[str, str] = ("P2", "Tr")  # the file's entries they came from (K and T_cam_lidar: a plain camera's)
 
+    def __post_init__(self):
+        """Matrices of the right shape, finite, the extrinsic rigid: a Calib built by hand (the
+        streaming API) is checked as a calibration file is, not at the first projection."""
+        try:
+            P2 = np.asarray(self.P2, dtype=np.float64)
+            Tr = np.asarray(self.Tr, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise D3LVOInputError(None, "Calib: P2 and Tr must be numeric matrices") from None
+        if P2.shape != (3, 4):
+            raise D3LVOInputError(None, f"Calib: P2 must be a 3x4 projection matrix, got shape {P2.shape}")
+        if Tr.shape == (3, 4):
+            Tr = np.vstack([Tr, [0.0, 0.0, 0.0, 1.0]])
+        if Tr.shape != (4, 4):
+            raise D3LVOInputError(None, f"Calib: Tr must be a 4x4 (or 3x4) LiDAR-to-camera transform, got shape {Tr.shape}")
+        if not (np.isfinite(P2).all() and np.isfinite(Tr).all()):
+            raise D3LVOInputError(None, "Calib: P2 and Tr must be finite (a NaN or inf entry)")
+        if not np.allclose(Tr[3], [0, 0, 0, 1]) or not np.allclose(Tr[:3, :3] @ Tr[:3, :3].T, np.eye(3), atol=1e-3):
+            raise D3LVOInputError(None, "Calib: Tr must be a rigid transform (an orthonormal rotation, last row 0 0 0 1)")
+        object.__setattr__(self, "P2", P2)
+        object.__setattr__(self, "Tr", Tr)
+
     @property
     def K2(self) -> np.ndarray:
         return self.P2[:, :3].copy()
@@ -118,6 +139,9 @@ def parse_calib(path: str | Path) -> Calib:
 # below this share of a scan's returns in the image, a warning: a forward camera with a 360-degree
 # LiDAR (KITTI's rig, the synthetic drives) sees a good part of every scan (tests/test_calib.py)
 FEW_IN_VIEW = 0.02
+# a scan whose median return is farther than this is not in metres: a 64-beam scan of a street
+# has its median within tens of metres, and long-range LiDARs within ~100
+MAX_MEDIAN_RANGE = 500.0
 
 
 def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: str | Path, frame: str) -> None:
@@ -139,6 +163,10 @@ def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: st
     pts = pts[np.isfinite(pts).all(1)]
     if len(pts) < 1000:  # an empty or sparse scan: its own warning, and too few to judge by
         return
+    reach = float(np.median(np.linalg.norm(pts, axis=1)))
+    if reach > MAX_MEDIAN_RANGE:
+        raise D3LVOInputError(None, f"the median range of frame {frame}'s {len(pts)} LiDAR returns is {reach:.0f} m: "
+                                     "points must be in metres (millimetres or centimetres?)")
     seen = len(project_points(pts, calib.P_velo_to_image2, width, height, PROJECTION_MIN_DEPTH)[2])
     if seen == 0:
         raise D3LVOInputError(where, f"none of the {len(pts)} LiDAR returns of frame {frame} lands in its {size} "

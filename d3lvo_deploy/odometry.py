@@ -17,7 +17,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .blas import one_blas_thread
-from .calib import Calib, parse_calib
+from .calib import Calib, check_fit, parse_calib
 from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
@@ -43,14 +43,44 @@ def check_frame_size(image: np.ndarray, width: int, height: int) -> None:
         raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {width}x{height}")
 
 
+# columns a scan may have: x y z, then intensity and what else a driver writes (ring, time)
+MAX_SCAN_COLUMNS = 6
+
+
+def rigid_pose(pose, what: str) -> np.ndarray:
+    """A 4x4 float64 copy of `pose`, or one error naming `what`: a NaN or a 3x3 given as a pose
+    would otherwise turn every later pose into NaN, or fail at a later step."""
+    try:
+        T = np.array(pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise D3LVOInputError(None, f"{what} must be a 4x4 pose matrix, got {type(pose).__name__}") from None
+    if T.shape != (4, 4):
+        raise D3LVOInputError(None, f"{what} must be a 4x4 pose matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise D3LVOInputError(None, f"{what} has NaN or inf entries")
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3) \
+            or np.linalg.det(T[:3, :3]) <= 0:
+        raise D3LVOInputError(None, f"{what} is not a rigid transform (rotation block not a rotation, or last row "
+                                    "not 0 0 0 1)")
+    return T
+
+
 def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
-    """Drop non-finite points. An empty result is allowed: the frame then has no LiDAR depth and
-    the completion stage works from the image alone (documented fallback), with a warning."""
+    """Drop non-finite points. An empty (or None) scan is allowed: the frame then has no LiDAR
+    depth and the completion stage works from the image alone (documented fallback), with a
+    warning."""
     if points is None:
-        return np.zeros((0, 4), np.float32)
-    pts = np.asarray(points, dtype=np.float32)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise D3LVOInputError(None, f"{source}: points must be an (N,3) or (N,4) array, got shape {pts.shape}")
+        points = np.zeros((0, 4), np.float32)
+    try:
+        pts = np.asarray(points, dtype=np.float32)
+    except (TypeError, ValueError):
+        got = f"an array of {points.dtype}" if isinstance(points, np.ndarray) else type(points).__name__
+        raise D3LVOInputError(None, f"{source}: points must be a numeric (N,4) array (x, y, z, intensity), "
+                                    f"got {got}") from None
+    if pts.ndim != 2 or not 3 <= pts.shape[1] <= MAX_SCAN_COLUMNS:
+        hint = " (transposed? a scan is one point per row)" if pts.ndim == 2 and pts.shape[0] in (3, 4) else ""
+        raise D3LVOInputError(None, f"{source}: points must be an (N,3) or (N,4) array (up to {MAX_SCAN_COLUMNS} "
+                                    f"columns, x y z first), got shape {pts.shape}{hint}")
     # per coordinate, not np.all(..., axis=1): that reduction over rows of 3 took 2.1 ms per scan, this 0.15
     finite = np.isfinite(pts[:, 0]) & np.isfinite(pts[:, 1]) & np.isfinite(pts[:, 2])
     if not finite.all():
@@ -58,7 +88,9 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
                       stacklevel=3)
         pts = pts[finite]
     if len(pts) == 0:
-        warnings.warn(f"{source}: no LiDAR points; this frame runs without depth input", ScanWarning, stacklevel=3)
+        warnings.warn(f"{source}: no LiDAR points; this frame runs without depth input, and a point solver, which "
+                      "tracks this frame's points into the next one, keeps that pair's starting motion (the last "
+                      "pair's; none on the first)", ScanWarning, stacklevel=3)
     return pts
 
 
@@ -98,7 +130,14 @@ class Odometry:
                  model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
         self.cold_start = cold_start
         self.model = model if model is not None else StageModel(model_dir, sc)
+        if not isinstance(calib, (Calib, str, Path)):
+            raise D3LVOInputError(None, f"calib must be a Calib or the path of a calibration file, got "
+                                        f"{type(calib).__name__}")
         self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
+        # what the first frame's check against the calibration names (`calib.check_fit`); `d3lvo
+        # run` checks before it opens the model and sets `fit_checked`
+        self.calib_source: str | Path = "the calibration" if isinstance(calib, Calib) else Path(calib)
+        self.fit_checked = False
         self.pre: FramePreprocessor | None = None
         self.last_timing = FrameTiming()
         self.keep_outputs = False  # keep the last frame's intermediate tensors in `last` (for --viz)
@@ -129,7 +168,7 @@ class Odometry:
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
         self._prev: dict[str, np.ndarray] | None = None
-        self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
+        self.pose = np.eye(4) if start_pose is None else rigid_pose(start_pose, "reset's start_pose")
         self.relative = np.eye(4)
         # the last pair's motion of the image_2 camera: where the Gauss-Newton head starts the next
         # pair (constant velocity; on the first pair identity, or for a point-solver graph
@@ -155,6 +194,8 @@ class Odometry:
         fixes the view), with `threads` 1. With 2 (`threads` defaults to `self.prepare_threads`,
         from `SessionConfig.preparing_threads`) the solver's frame is made on a second thread
         beside the network's inputs; the same arrays either way."""
+        if not isinstance(image, np.ndarray):
+            raise D3LVOInputError(None, f"image must be an (H,W,3) uint8 RGB numpy array, got {type(image).__name__}")
         if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
             raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
@@ -173,6 +214,10 @@ class Odometry:
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
         scan = clean_scan(points, self.scan_source) if self.model.depth_input != "none" else None  # checked before any job starts
+        if not self.fit_checked:  # the first frame: images and scans the calibration cannot be for
+            check_fit(self.calib, image.shape[1], image.shape[0], scan if scan is not None else np.zeros((0, 3)),
+                      self.calib_source, "0")
+            self.fit_checked = True
         # the solver's finest level (the camera's grey image and its gradients) needs no scan: it
         # starts at once, beside the scan's cull
         finest = self._beside(functools.partial(finest_level, image), threads) if self.model.point_solver else None
@@ -317,8 +362,11 @@ class Odometry:
         """Resume: take frame t-1 and its known pose without estimating anything; with the pose
         before it, the next pair starts from that motion, as an uninterrupted run would (or from
         `start`, the saved `motion2`, where the graph `keeps_own_start`)."""
+        pose = rigid_pose(pose, "prime's pose")
+        previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
+        start = None if start is None else rigid_pose(start, "prime's start")
         self._prev = self.encode(image, points)
-        self.pose = np.array(pose, dtype=np.float64)
+        self.pose = pose
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)

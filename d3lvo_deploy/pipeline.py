@@ -216,6 +216,7 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     if depth > 1 and opens:
         sc = sc.pipelined(depth)
     odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
+    odo.fit_checked = True  # above, against the recording's own first frame and calibration file
     return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done, depth=depth, sc=sc if opens else None)
 
 

@@ -29,18 +29,29 @@ class Trajectory:
         return cls(poses, np.arange(len(poses)), timestamps)
 
 
-def _parse_rows(path: Path) -> list[list[float]]:
+def _text(path: Path) -> str:
+    """The file's text; a byte-order mark says UTF-16 (Windows PowerShell's `>`) or UTF-8 with a
+    BOM (Notepad), which would otherwise read as a first line that is not numbers."""
+    raw = path.read_bytes()
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        return raw.decode("utf-16", errors="replace")
+    return raw.decode("utf-8-sig", errors="replace")
+
+
+def _parse_rows(path: Path) -> tuple[list[list[float]], list[int]]:
+    """The rows of numbers and their line numbers (blank lines and # comments left out)."""
     rows: list[list[float]] = []
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            try:
-                rows.append([float(v) for v in s.replace(",", " ").split()])
-            except ValueError:
-                raise D3LVOInputError(path, f"line {lineno} is not a row of numbers: {s[:60]!r}") from None
-    return rows
+    lines: list[int] = []
+    for lineno, line in enumerate(_text(path).splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        try:
+            rows.append([float(v) for v in s.replace(",", " ").split()])
+        except ValueError:
+            raise D3LVOInputError(path, f"line {lineno} is not a row of numbers: {s[:60]!r}") from None
+        lines.append(lineno)
+    return rows, lines
 
 
 # a KITTI line's rotation may be written with few digits (two decimals put R R^T up to ~0.015 from
@@ -54,12 +65,16 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise D3LVOInputError(path, "pose file not found")
-    rows = _parse_rows(path)
+    rows, lines = _parse_rows(path)
     if not rows:
         raise D3LVOInputError(path, "pose file is empty")
     widths = {len(r) for r in rows}
     if len(widths) != 1:
-        raise D3LVOInputError(path, f"rows have different column counts {sorted(widths)}")
+        counts = [len(r) for r in rows]
+        usual = max(widths, key=lambda w: (counts.count(w), w == counts[0]))  # ties: the first line's
+        k = next(i for i, c in enumerate(counts) if c != usual)
+        raise D3LVOInputError(path, f"line {lines[k]} has {counts[k]} numbers where the others have {usual} "
+                                    f"(column counts {sorted(widths)})")
     ncol = widths.pop()
     if fmt == "auto":
         fmt = {12: "kitti", 13: "kitti_indexed", 8: "tum"}.get(ncol, "")

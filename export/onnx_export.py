@@ -205,6 +205,8 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         raise D3LVOInputError(None, f"--set: {e}") from None
     model = build_model({**ck, "config": cfg})
     out = Path(ec.out)
+    if out.exists() and not out.is_dir():
+        raise D3LVOInputError(out, "is a file; --out names the folder the export writes")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write_test"

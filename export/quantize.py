@@ -93,6 +93,8 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         if not calib_seqs:
             raise D3LVOInputError(None, "INT8 needs calibration frames (--calib-seq DIR)")
         feeds = calibration_feeds(fp32_dir, calib_seqs)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise D3LVOInputError(out_dir, "is a file; --out names the folder the export writes")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:

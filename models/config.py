@@ -222,6 +222,14 @@ class D3LVOConfig:
         if not (isinstance(self.pt_iters, (tuple, list)) and self.pt_iters
                 and all(isinstance(n, int) and n >= 1 for n in self.pt_iters)):
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
+        # the solver's numbers: a negative damping or stop makes the step's solve meaningless
+        for key in ("pt_stop", "pt_damping", "pt_min_gradient", "gn_damping"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"{key} must be 0 or more, not {getattr(self, key)!r}")
+        if not self.gn_huber > 0:
+            raise ValueError(f"gn_huber must be above 0, not {self.gn_huber!r}")
+        if not (isinstance(self.gn_iters, int) and self.gn_iters >= 0):
+            raise ValueError(f"gn_iters must be a whole number of steps, 0 or more, not {self.gn_iters!r}")
         if not (isinstance(self.pt_scale_every, int) and self.pt_scale_every >= 1):
             raise ValueError(f"pt_scale_every must be a whole number of steps, at least 1, not {self.pt_scale_every!r}")
         if not (isinstance(self.pt_median_stride, int) and self.pt_median_stride >= 1):

@@ -134,7 +134,8 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
     for args, words in ((["--height", "0", "--width", "0"], "input 0x0 is too small: at least 32x32"),
                         (["--height", "-16", "--width", "64"], "input 64x-16 is too small"),
                         (["--backend", "onnxruntime", "--ov-precision", "bf16"], "--ov-precision applies to OpenVINO"),
-                        (["--seq-dir", "nowhere"], "nowhere: sequence folder not found")):
+                        (["--seq-dir", "nowhere"], "nowhere: sequence folder not found"),
+                        (["--profile", __file__], "is a file; --profile names a folder")):
         r = runner.invoke(app, ["bench", *args])
         assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, (args, r.output)
 

@@ -205,6 +205,10 @@ def test_cli_export_errors(tmp_path):
     blocker.write_text("")
     r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(blocker / "sub")])
     assert r.exit_code == 1 and "not writable" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(blocker)])
+    assert r.exit_code == 1 and "is a file; --out names the folder" in r.output, r.output
+    r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--set", "pt_damping=-5"])
+    assert r.exit_code == 1 and "pt_damping must be 0 or more" in r.output and "Traceback" not in r.output, r.output
     r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--height", "100"])
     assert r.exit_code == 1 and "divisible by 16" in r.output
     r = runner.invoke(app, ["export", "--ckpt", str(ck), "--out", str(tmp_path / "o"), "--height", "0", "--width", "0"])
@@ -217,11 +221,16 @@ def test_cli_export_errors(tmp_path):
 
 
 def test_cli_parity_json(exported, small_synth):
+    """--backend auto checks the engine `d3lvo run` would take, and says which by name."""
+    from d3lvo_deploy.backends import SessionConfig
+
     ck, out, _ = exported
-    r = runner.invoke(app, ["parity", "--ckpt", str(ck), "--onnx", str(out), "--seq-dir", str(small_synth), "--json"])
+    r = runner.invoke(app, ["parity", "--ckpt", str(ck), "--onnx", str(out), "--seq-dir", str(small_synth), "--json",
+                            "--backend", "auto"])
     assert r.exit_code == 0, r.output
     data = json.loads(r.stdout)
     assert data["pass"] is True and data["chained"]["translation_m"] < 1e-4
+    assert data["backend"] == SessionConfig(backend="auto").resolved().backend
 
 
 # Bounds against the fp32 folder, per output, on the inputs each stage really gets (the fp32

@@ -55,7 +55,9 @@ def test_indexed_rows_with_skipped_frames():
     [
         ("", "empty"),
         ("1 2 3\n", "3 columns"),
-        ("1 2 3 4 5 6 7 8 9 10 11 12\n1 2 3\n", "different column counts"),
+        ("1 2 3 4 5 6 7 8 9 10 11 12\n1 2 3\n", "line 2 has 3 numbers where the others have 12 (column counts [3, 12])"),
+        ("# c\n1 0 0 0 0 1 0 0 0 0 1 0\n\n1 0 0 0 0 1 0 0 0 0 1\n1 0 0 0 0 1 0 0 0 0 1 0\n",
+         "line 4 has 11 numbers where the others have 12"),
         ("1 2 3 4 5 6 7 8 9 10 11 nan\n", "NaN"),
         ("1 2 3 4 5 6 7 8 9 10 11 x\n", "line 1"),
         ("3 1 0 0 0 0 1 0 0 0 0 1 0\n2 1 0 0 0 0 1 0 0 0 0 1 0\n", "increasing"),
@@ -75,6 +77,16 @@ def test_bad_files_name_the_file(tmp_path, text, words):
     with pytest.raises(D3LVOInputError) as e:
         read_poses(f)
     assert "bad.txt" in str(e.value) and words in str(e.value)
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16"])
+def test_files_saved_with_a_byte_order_mark_read_as_plain_ones(tmp_path, encoding):
+    """Notepad's UTF-8 with a BOM and PowerShell's UTF-16 give the same poses as plain text."""
+    text = "1 0 0 0.5 0 1 0 0 0 0 1 2\r\n1 0 0 1.5 0 1 0 0 0 0 1 3\r\n"
+    (tmp_path / "plain.txt").write_text(text, encoding="utf-8")
+    (tmp_path / "bom.txt").write_text(text, encoding=encoding)
+    np.testing.assert_array_equal(read_poses(tmp_path / "bom.txt").poses, read_poses(tmp_path / "plain.txt").poses)
+    assert read_poses(tmp_path / "bom.txt").poses[1, 0, 3] == 1.5
 
 
 def test_a_rotation_written_with_two_decimals_is_read(tmp_path):

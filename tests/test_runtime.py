@@ -131,6 +131,41 @@ def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
     np.testing.assert_array_equal(odo.step(seq.image(3), seq.scan(3)), np.eye(4))
 
 
+def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_synth):
+    """Inputs that would otherwise run to a wrong trajectory, NaN poses or a failure frames later
+    are one D3LVOInputError at the call: a transposed scan, a scan in millimetres, images of
+    another size than the calibration's, a LiDAR extrinsic that sees nothing, non-rigid or NaN
+    poses for reset/prime, and wrong argument types."""
+    from d3lvo_deploy.calib import Calib
+
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    img, scan = seq.image(0), seq.scan(0)
+    fresh = lambda calib=small_synth / "calib.txt": Odometry(onnx_dir, calib)  # noqa: E731
+    mm = scan.copy()
+    mm[:, :3] *= 1000.0
+    cases = [(lambda: fresh().step(img, scan.T), "transposed"),
+             (lambda: fresh().step(img, mm), "must be in metres"),
+             (lambda: fresh().step(np.ascontiguousarray(img[:90, :300]), scan), "lies outside frame 0's 300x90 image"),
+             (lambda: fresh(Calib(seq.calib.P2, np.eye(4))).step(img, scan), "none of the"),
+             (lambda: fresh().step(None, scan), "got NoneType"),
+             (lambda: fresh().step(img, [["a", "b", "c"]]), "numeric (N,4) array"),
+             (lambda: fresh({"P2": seq.calib.P2}), "calib must be a Calib or the path"),
+             (lambda: Calib(seq.calib.P2[:, :3], seq.calib.Tr), "P2 must be a 3x4"),
+             (lambda: Calib(seq.calib.P2, np.full((4, 4), np.nan)), "finite"),
+             (lambda: fresh().reset(np.full((4, 4), np.nan)), "start_pose has NaN"),
+             (lambda: fresh().reset(np.eye(3)), "start_pose must be a 4x4"),
+             (lambda: fresh().reset(np.diag([2.0, 1.0, 1.0, 1.0])), "not a rigid transform"),
+             (lambda: fresh().prime(img, scan, np.eye(4), previous_pose=np.full((4, 4), np.nan)), "previous_pose")]
+    for call, words in cases:
+        with pytest.raises(D3LVOInputError, match=words.replace("(", r"\(").replace(")", r"\)")):
+            call()
+    odo = fresh()  # the same frame, right: the tracker takes it
+    np.testing.assert_array_equal(odo.step(img, scan), np.eye(4))
+    with pytest.warns(ScanWarning, match="keeps that pair's starting motion"):  # None: no scan, said so
+        odo.step(seq.image(1), None)
+
+
 def test_real_frames_give_20_finite_poses(small_model, tmp_path):
     _, onnx_dir = small_model
     seq = KittiSequence.open(shared_path("kitti_raw_snippet", "sequences", "r0926"))
