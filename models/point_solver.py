@@ -16,8 +16,8 @@ Standard ONNX ops only: the image pyramids are inputs (`image_pyramids`; cv2 at 
 GridSample does the bilinear samples, TopK the median, MatMul the normal equations and Gauss-Jordan
 elimination the 6x6 solve, Loop the blocks of steps (`export/solver_loop.py`); onnxruntime's graph
 samples with one GatherElements (`sampling`) and solves by Cramer's rule (one Det op, which
-OpenVINO does not convert). A step is 136 graph ops (116 in onnxruntime's), each a few
-microseconds whatever its size, so `gn_steps` is written for few ops and few passes over the
+OpenVINO does not convert). A block of three steps with the exposure match is 588 graph ops (510
+in onnxruntime's), each a few microseconds whatever its size, so `gn_steps` is written for few ops and few passes over the
 points (`python -m export.solver_bench`, docs/performance.md).
 Convention as `gauss_newton`: M maps frame t-1 points into frame t; left updates exp(xi) M.
 """
