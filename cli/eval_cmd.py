@@ -76,7 +76,13 @@ def eval_command(
     for p, what in [(gt, "ground truth")] + [(e, "estimate") for e in est]:
         if not p.exists():
             raise D3LVOInputError(p, f"{what} not found")
-    reports = {label: evaluate_files(pair_result_files(gt, e), align=align) for label, e in zip(_labels(est), est)}
+    reports = {}
+    for label, e in zip(_labels(est), est):
+        pairs, unpaired = pair_result_files(gt, e)
+        if unpaired:
+            console.print(f"[yellow]note[/] {escape(str(e))}: {', '.join(unpaired)} not scored: no file of that name "
+                          f"in {escape(str(gt))}", highlight=False)
+        reports[label] = evaluate_files(pairs, align=align)
     many = len(reports) > 1
     for label, report in reports.items():
         for s in report.sequences:

@@ -252,8 +252,11 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if resume and out_path is None and out_dir is None:
         raise D3LVOInputError(None, "--resume continues a results folder: name it with --out-dir "
                                     "(results/latest is the newest)")
-    seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic,
-                          max_dt)
+    with warnings.catch_warnings(record=True) as caught:  # a reader's notes (an assumed frame rate), in one style
+        warnings.simplefilter("always")
+        seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic,
+                              info_topic, max_dt)
+    _print_warnings(caught)
     _check_ground_truth(seq, given=gt is not None)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision, classical_beside=classical_beside)
@@ -514,7 +517,17 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.scaleout import plan_chunks
 
-    total = sum(len(plan_chunks(len(KittiSequence.open(d)), chunk, overlap)) for d in dirs.values())
+    seqs = {n: KittiSequence.open(d) for n, d in dirs.items()}
+    total = sum(len(plan_chunks(len(s), chunk, overlap)) for s in seqs.values())
+    # ground truth checked before the work, as a single run's: one that does not fit is a warning
+    # and its sequence goes unscored; the others are still scored
+    scored = []
+    for n, s in seqs.items():
+        try:
+            if s.ground_truth is not None:
+                scored.append(n)
+        except D3LVOInputError as e:
+            console.print(f"[yellow]warning[/] {escape(str(e))}; sequence {n} runs without scoring", highlight=False)
     # the machine's cores split between the workers, on the engine --backend names (resolved here,
     # so every worker runs the same one)
     sc = SessionConfig(threads=max(1, (os.cpu_count() or 1) // max(workers, 1)), backend=backend)
@@ -528,8 +541,10 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
                              on_sequence=lambda n, p, r: console.print(f"{n}: {p} (overlap residual {r:.1e} m)",
                                                                          highlight=False))
     console.print(f"{len(residuals)} sequences in {time.perf_counter() - t0:.1f} s", highlight=False)
-    pairs = [(kitti_root / "poses" / f"{n}.txt", out_dir / f"{n}.txt") for n in names
-             if (kitti_root / "poses" / f"{n}.txt").is_file()]
+    unscored = [n for n in names if n not in scored]
+    if unscored:
+        console.print(f"not scored (no ground truth that fits): {', '.join(unscored)}", highlight=False)
+    pairs = [(seqs[n].gt_path, out_dir / f"{n}.txt") for n in scored]
     if pairs:
         out.print(report_table(evaluate_files(pairs)))
 

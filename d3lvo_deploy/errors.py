@@ -12,3 +12,8 @@ class D3LVOInputError(Exception):
         self.path = None if path is None else Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+    def __reduce__(self):
+        # rebuilt from (path, problem), not from the message: a scale-out worker's error reaches the
+        # parent process (pickled) as the same one-line error
+        return type(self), (self.path, self.problem)

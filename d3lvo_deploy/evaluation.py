@@ -234,19 +234,19 @@ def evaluate_files(pairs: list[tuple[Path, Path]], align: str = "none") -> EvalR
     return EvalReport(results, align)
 
 
-def pair_result_files(gt: Path, est: Path) -> list[tuple[Path, Path]]:
-    """Files pair with files; folders pair by file name (KITTI `NN.txt`), as the devkit does."""
+def pair_result_files(gt: Path, est: Path) -> tuple[list[tuple[Path, Path]], list[str]]:
+    """Files pair with files; folders pair by file name (KITTI `NN.txt`), as the devkit does, and
+    an estimate without a ground-truth file of its name (KITTI 11-21 have none) is left out and
+    named in the second list; a folder with no pair at all is an error."""
     if gt.is_dir() != est.is_dir():
         raise D3LVOInputError(est, "--gt and --est must both be files or both be folders")
     if not gt.is_dir():
-        return [(gt, est)]
+        return [(gt, est)], []
     est_files = sorted(est.glob("*.txt"))
     if not est_files:
         raise D3LVOInputError(est, "folder holds no .txt trajectories")
-    pairs = []
-    for f in est_files:
-        g = gt / f.name
-        if not g.is_file():
-            raise D3LVOInputError(g, f"no ground truth for {f.name}")
-        pairs.append((g, f))
-    return pairs
+    pairs = [(gt / f.name, f) for f in est_files if (gt / f.name).is_file()]
+    unpaired = [f.name for f in est_files if not (gt / f.name).is_file()]
+    if not pairs:
+        raise D3LVOInputError(gt, f"holds no ground truth of the names in {est} ({', '.join(unpaired[:5])})")
+    return pairs, unpaired

@@ -151,7 +151,16 @@ def _ray(chunks, model_dir, sc, workers, address) -> Iterator[tuple[Chunk, np.nd
         for c in chunks:
             pool.submit(lambda a, ch: a.run.remote(ch, model_dir, sc), c)
         while pool.has_next():
-            yield pool.get_next_unordered()
+            try:
+                result = pool.get_next_unordered()
+            except ray.exceptions.RayTaskError as e:
+                # a worker's bad-input error (a truncated scan) is the one line it would be on one
+                # machine, not Ray's wrapped traceback
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, D3LVOInputError):
+                    raise D3LVOInputError(cause.path, cause.problem) from None
+                raise
+            yield result
     finally:
         if started:
             ray.shutdown()

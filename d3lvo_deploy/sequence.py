@@ -128,11 +128,17 @@ class KittiSequence:
         return self._gt
 
 
+# file names that are frame counts rather than time stamps
+FRAME_NUMBERS_BELOW = 10_000_000
+
+
 def _check_contiguous(root: Path, names: list[str]) -> None:
     """KITTI frames are numbered 000000..N-1; a gap would silently pair non-consecutive frames."""
     if not all(n.isdigit() for n in names):
         return
     ids = np.array([int(n) for n in names])
+    if ids[0] >= FRAME_NUMBERS_BELOW:  # stamps as names (a recorder's ns or ms): no count to check
+        return
     gaps = np.nonzero(np.diff(ids) != 1)[0]
     if len(gaps):
         g = gaps[0]

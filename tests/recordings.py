@@ -24,7 +24,8 @@ def _msgs(ts, ros1: bool):
 
 
 def _messages(ts, ros1: bool, seq, frames, image_frame: str, lidar_frame: str, compressed: bool, stamp_offset: float,
-              tf: bool, info: bool, dropped: str | None):
+              tf: bool, info: bool, dropped: str | None, info_size: tuple[int, int] | None = None,
+              second_info: bool = False):
     """(topic, msgtype, message, time s) for the sequence, in time order."""
     T, header = _msgs(ts, ros1)
     out = []
@@ -50,10 +51,13 @@ def _messages(ts, ros1: bool, seq, frames, image_frame: str, lidar_frame: str, c
                         p=P.reshape(-1).astype(np.float64))
             if ros1:  # ROS 1 spells them D, K, R, P
                 mats = {k.upper(): v for k, v in mats.items()}
+            iw, ih = info_size if info_size is not None else (w, h)
             cam_info = T["sensor_msgs/msg/CameraInfo"](
-                header=header(t, image_frame), height=h, width=w, distortion_model="plumb_bob",
+                header=header(t, image_frame), height=ih, width=iw, distortion_model="plumb_bob",
                 binning_x=0, binning_y=0, roi=roi, **mats)
             out.append(("/camera/camera_info", "sensor_msgs/msg/CameraInfo", cam_info, t))
+            if second_info:  # another camera's, e.g. a second camera that was not recorded
+                out.append(("/camera2/camera_info", "sensor_msgs/msg/CameraInfo", cam_info, t))
         if dropped != "image":
             if compressed:
                 ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))

@@ -455,3 +455,88 @@ def test_a_config_repeated_on_another_recording_leaves_the_old_ones_topics(tmp_p
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "q.txt")])
     assert r.exit_code == 1 and "--image-topic, --max-dt are for ROS bags" in r.output, r.output
+
+
+def test_folder_frames_run_in_number_order_and_a_gap_stops(tmp_path):
+    """frame_8, frame_9, frame_10 (unpadded) run in that order, not as text sorts them (frame_10
+    first); a missing frame_9 is a gap, as in a KITTI folder."""
+    seq = KittiSequence.open(TINY)
+    folder = write_scan_folder(seq, tmp_path / "f", ".npy")
+    for sub, ext in (("images", ".png"), ("scans", ".npy")):
+        for i in range(3):
+            (folder / sub / f"{i:06d}{ext}").rename(folder / sub / f"frame_{8 + i}{ext}")
+    s = open_sequence(folder)
+    assert s.frame_names == ["frame_8", "frame_9", "frame_10"]
+    assert all(np.array_equal(s.scan(i), seq.scan(i)) for i in range(3))
+    for sub, ext in (("images", ".png"), ("scans", ".npy")):
+        (folder / sub / f"frame_9{ext}").unlink()
+    (folder / "times.txt").unlink()
+    with pytest.raises(D3LVOInputError, match="frame numbers jump from frame_8 to frame_10"):
+        open_sequence(folder)
+
+
+def test_a_folder_ground_truth_that_does_not_fit_is_a_warning(tmp_path):
+    """As for a KITTI folder: a poses.txt found beside the frames that does not fit leaves the run
+    unscored, with a warning; named with --gt it stops the run."""
+    seq = KittiSequence.open(TINY)
+    folder = write_scan_folder(seq, tmp_path / "f", ".npy")
+    (folder / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
+    r = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "p.txt"), "--backend", "onnxruntime"])
+    assert r.exit_code == 0 and "2 poses for a sequence of 3 frames" in r.output and "without scoring" in r.output, \
+        r.output
+    r = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "q.txt"), "--gt", str(folder / "poses.txt")])
+    assert r.exit_code == 1 and "2 poses for a sequence of 3 frames" in r.output, r.output
+
+
+def test_kitti_raw_gaps_and_missing_scans_are_named(tmp_path):
+    seq = KittiSequence.open(TINY)
+    drive = write_kitti_raw(seq, tmp_path / "2011_09_26")
+    (drive / "velodyne_points" / "data" / "0000000002.bin").unlink()
+    with pytest.raises(D3LVOInputError, match=r"frames without a scan: \['0000000002'\]"):
+        open_sequence(drive)
+    (drive / "image_02" / "data" / "0000000002.png").unlink()
+    (drive / "image_02" / "data" / "0000000001.png").rename(drive / "image_02" / "data" / "0000000002.png")
+    (drive / "velodyne_points" / "data" / "0000000001.bin").rename(drive / "velodyne_points" / "data" / "0000000002.bin")
+    (drive / "image_02" / "timestamps.txt").unlink()
+    with pytest.raises(D3LVOInputError, match="frame numbers jump from 0000000000 to 0000000002"):
+        open_sequence(drive)
+
+
+def test_bag_camera_info_of_another_size_and_beside_a_compressed_topic(tmp_path):
+    """A CameraInfo for another resolution is one error at the first image, not intrinsics
+    silently misapplied; the CameraInfo beside /camera/image_raw/compressed is /camera/camera_info
+    even with another camera's CameraInfo in the bag."""
+    seq = KittiSequence.open(TINY)
+    big = write_ros2_bag(seq, tmp_path / "big", info_size=(1242, 376))
+    with pytest.raises(D3LVOInputError, match="the CameraInfo gives 1242x376 images, but frame 0's image"):
+        open_sequence(big).image(0)
+    two = write_ros2_bag(seq, tmp_path / "two", compressed=True, second_info=True)
+    s = open_sequence(two)
+    assert np.array_equal(s.calib.P2, seq.calib.P2) and np.array_equal(s.image(1), seq.image(1))
+
+
+def test_input_errors_cross_process_boundaries_whole():
+    """A scale-out worker's error reaches the parent pickled: the same path and problem, one line."""
+    import pickle
+
+    e = pickle.loads(pickle.dumps(D3LVOInputError(Path("a/b.bin"), "100 bytes is not a whole number of points")))
+    assert isinstance(e, D3LVOInputError) and e.path == Path("a/b.bin") and str(e) == "a/b.bin: 100 bytes is not a " \
+        "whole number of points"
+
+
+def test_eval_of_folders_scores_what_has_ground_truth(tmp_path):
+    """Estimates of sequences without ground truth (KITTI 11-21) are left out with a note; the
+    others are scored as alone."""
+    gt, est = tmp_path / "gt", tmp_path / "est"
+    gt.mkdir()
+    est.mkdir()
+    poses = "".join(f"1 0 0 0 0 1 0 0 0 0 1 {0.8 * k}\n" for k in range(12))
+    (gt / "00.txt").write_text(poses)
+    (est / "00.txt").write_text(poses)
+    (est / "11.txt").write_text(poses)
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est), "--json"])
+    assert r.exit_code == 0, r.output
+    assert "11.txt not scored" in r.output
+    (gt / "00.txt").rename(gt / "01.txt")
+    r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est)])
+    assert r.exit_code == 1 and "holds no ground truth of the names" in r.output, r.output

@@ -127,3 +127,24 @@ def test_engine_and_workers_are_checked_before_the_progress_bar(tmp_path, extra,
     r = runner.invoke(app, ["run", "--kitti-root", str(tmp_path), "--sequences", "00", "--out-dir",
                             str(tmp_path / "o"), *extra])
     assert r.exit_code == 1 and words in r.output and "chunks" not in r.output, r.output
+
+
+def test_many_sequences_warn_of_ground_truth_that_does_not_fit_and_score_the_rest(tmp_path):
+    """As a single run: a poses/NN.txt of another length is a warning before the work and that
+    sequence goes unscored; a sequence without one is named; the others are scored."""
+    from conftest import ROOT
+
+    tiny = ROOT / "tests" / "data" / "tiny_seq"
+    root = tmp_path / "kitti"
+    (root / "poses").mkdir(parents=True)
+    for n in ("00", "01", "02"):
+        shutil.copytree(tiny, root / "sequences" / n, ignore=shutil.ignore_patterns("poses.txt"))
+    shutil.copy(tiny / "poses.txt", root / "poses" / "00.txt")
+    (root / "poses" / "01.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
+    r = runner.invoke(app, ["run", "--kitti-root", str(root), "--sequences", "00-02", "--out-dir", str(tmp_path / "o"),
+                            "--engine", "sequential", "--backend", "onnxruntime"])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "01.txt: 2 poses for a sequence of 3 frames" in text and "sequence 01 runs without scoring" in text, r.output
+    assert text.index("runs without scoring") < text.index("sequences in")  # before the work
+    assert "not scored (no ground truth that fits): 01, 02" in text and "│ 00 │ 3 │" in text, r.output

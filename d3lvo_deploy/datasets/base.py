@@ -40,14 +40,19 @@ class SensorSequence:
 
     @property
     def ground_truth(self) -> Trajectory | None:
+        """Read when first asked for, as a KITTI sequence's: `d3lvo run` asks before the first
+        frame, and a file found beside the recording that does not fit is then a warning, one
+        named by --gt an error."""
+        if self.gt is None and self.gt_path is not None:
+            truth = read_poses(self.gt_path)
+            if len(truth) != len(self):
+                raise D3LVOInputError(self.gt_path, f"{len(truth)} poses for a sequence of {len(self)} frames")
+            self.gt = truth
         return self.gt
 
     def attach_ground_truth(self, path: str | Path) -> None:
-        """Score against this trajectory file; one pose per frame or one clear error."""
-        truth = read_poses(path)
-        if len(truth) != len(self):
-            raise D3LVOInputError(path, f"{len(truth)} poses for a sequence of {len(self)} frames")
-        self.gt, self.gt_path = truth, Path(path)
+        """Score against this trajectory file (read and checked by `ground_truth`)."""
+        self.gt, self.gt_path = None, Path(path)
 
 
 def check_increasing(path: Path, times: np.ndarray) -> np.ndarray:

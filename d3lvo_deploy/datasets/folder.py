@@ -7,6 +7,7 @@ extra), not hand-written parsers: PCD alone has ASCII, binary and LZF-compressed
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -15,7 +16,7 @@ import numpy as np
 
 from ..calib import parse_calib
 from ..errors import D3LVOInputError
-from ..sequence import _check_contiguous, _read_times, read_image, read_scan
+from ..sequence import FRAME_NUMBERS_BELOW, _check_contiguous, _read_times, read_image, read_scan
 from .base import SensorSequence, as_scan
 
 IMAGE_DIRS = ("image_2", "images", "image", "camera", "rgb", "img")
@@ -89,14 +90,35 @@ def read_any_scan(path: str | Path) -> np.ndarray:
     return reader(path)
 
 
+def natural_key(path: Path) -> list:
+    """frame_9 before frame_10: numbers in a name compare as numbers (as text, unpadded names
+    would run frame 10 before frame 9)."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.stem)]
+
+
 def _pick(root: Path, names: tuple[str, ...], exts: tuple[str, ...]) -> tuple[Path, list[Path]] | None:
     for n in names:
         d = root / n
         if d.is_dir():
-            files = sorted(p for p in d.iterdir() if p.suffix.lower() in exts)
+            files = sorted((p for p in d.iterdir() if p.suffix.lower() in exts), key=natural_key)
             if files:
                 return d, files
     return None
+
+
+def _check_numbered(root: Path, names: list[str]) -> None:
+    """Names of one prefix and a frame number (frame_8, frame_9, ...): a gap in the numbers would
+    pair frames that are not consecutive, as in a KITTI folder (`_check_contiguous`)."""
+    parts = [re.fullmatch(r"(.*?)(\d+)", n) for n in names]
+    if not all(parts) or len({m.group(1) for m in parts}) != 1 or all(n.isdigit() for n in names):
+        return
+    ids = np.array([int(m.group(2)) for m in parts])
+    if ids[0] >= FRAME_NUMBERS_BELOW:
+        return
+    gaps = np.nonzero(np.diff(ids) != 1)[0]
+    if len(gaps):
+        g = gaps[0]
+        raise D3LVOInputError(root, f"frame numbers jump from {names[g]} to {names[g + 1]} (missing frame?)")
 
 
 def is_folder(path: Path) -> bool:
@@ -134,6 +156,7 @@ class FolderSequence(SensorSequence):
                                         f"{scan_dir.name}/; images without a scan: {missing[:3]}, scans without an "
                                         f"image: {extra}")
         _check_contiguous(root, names)
+        _check_numbered(root, names)
         if calib is None:
             calib = next((root / n for n in CALIB_NAMES if (root / n).is_file()), root / "calib.txt")
         cal = parse_calib(calib)

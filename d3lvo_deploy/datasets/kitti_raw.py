@@ -7,6 +7,7 @@ rectified) and P2 = P_rect_02, the same matrices the odometry benchmark's calib.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -18,7 +19,7 @@ from ..calib import Calib
 from ..errors import D3LVOInputError
 from ..geometry import make_se3, se3_inv
 from ..poses import Trajectory
-from ..sequence import read_image, read_scan
+from ..sequence import _check_contiguous, read_image, read_scan
 from .base import SensorSequence, check_increasing
 
 EARTH_RADIUS = 6378137.0  # m, the devkit's `er`
@@ -140,12 +141,22 @@ class KittiRawSequence(SensorSequence):
         if not images:
             raise D3LVOInputError(img_dir, "holds no .png images")
         if images != scans:
-            raise D3LVOInputError(drive, f"{len(images)} images but {len(scans)} scans with other numbers: "
-                                         "D3LVO reads the synchronised drives (..._sync), not ..._extract")
+            lonely = sorted(set(images) - set(scans))[:3]
+            extra = sorted(set(scans) - set(images))[:3]
+            raise D3LVOInputError(drive, f"{len(images)} images but {len(scans)} scans; frames without a scan: {lonely}, "
+                                         f"scans without an image: {extra} (a _sync drive has one of each per frame; "
+                                         "an ..._extract drive's are not paired)")
+        _check_contiguous(drive, images)
         calib, T_velo_imu = raw_calib(drive)
-        times = read_raw_times(drive / "image_02" / "timestamps.txt", len(images))
+        stamps = drive / "image_02" / "timestamps.txt"
+        if not stamps.is_file():
+            warnings.warn(f"{stamps}: missing; the frames are taken as 0.1 s apart (KITTI's 10 Hz)", stacklevel=2)
+        times = read_raw_times(stamps, len(images))
         gt, gt_path = None, None
         oxts = drive / "oxts" / "data"
+        if oxts.is_dir() and T_velo_imu is None:
+            warnings.warn(f"{drive}: oxts/ is there but calib_imu_to_velo.txt is not (in the drive or its date "
+                          "folder), which places the IMU: the run is not scored", stacklevel=2)
         if oxts.is_dir() and T_velo_imu is not None:
             T_cam_imu = calib.Tr @ T_velo_imu  # IMU -> rectified cam0
             imu = oxts_poses(_read_oxts(oxts, images))

@@ -156,6 +156,7 @@ class BagSequence(SensorSequence):
     _conns: tuple = field(default=(), repr=False)
     _log_times: list[tuple[int, int]] = field(default_factory=list, repr=False)  # (image, cloud) bag times, ns
     _rectify: tuple | None = field(default=None, repr=False)
+    _info_size: tuple[int, int] | None = field(default=None, repr=False)  # CameraInfo's (width, height), where set
 
     @classmethod
     def open(cls, path: str | Path, options: BagOptions = BagOptions()) -> "BagSequence":
@@ -194,20 +195,20 @@ class BagSequence(SensorSequence):
                                         f"{cloud.topic} within {options.max_dt} s (closest: {gap:.3f} s); "
                                         "odometry needs two frames at least (--max-dt widens the tolerance)")
         cam_frame, lidar_frame = im[0][2], cl[0][2]
-        calib, rectify = cls._calibration(path, reader, conns, img, options, cam_frame, lidar_frame)
+        calib, rectify, info_size = cls._calibration(path, reader, conns, img, options, cam_frame, lidar_frame)
         times = np.array([im_t[i] for i, _ in pairs])
         seq = cls(root=path, calib=calib, frame_names=[f"{k:06d}" for k in range(len(pairs))], times=times - times[0],
                   frame_label=f"camera frame '{cam_frame}' of {img.topic} (x right, y down, z forward)",
                   options=options, calib_path=options.calib)
         seq._reader, seq._conns = reader, (imgs, clouds)
         seq._log_times = [(im[i][0], cl[j][0]) for i, j in pairs]
-        seq._rectify = rectify
+        seq._rectify, seq._info_size = rectify, info_size
         return seq
 
     @staticmethod
     def _calibration(path, reader, conns, img, options: BagOptions, cam_frame: str, lidar_frame: str):
         if options.calib is not None:
-            return parse_calib(options.calib), None
+            return parse_calib(options.calib), None, None
         infos = _pick(path, conns, (INFO_TYPE,), options.info_topic or _info_topic(conns, img.topic), "CameraInfo",
                       "--info-topic")
         first = next(iter(reader.messages(connections=infos)), None) if infos else None
@@ -244,7 +245,7 @@ class BagSequence(SensorSequence):
                 if tf_conns else "has no /tf_static"
             raise D3LVOInputError(path, f"no LiDAR-camera extrinsics: the bag {where}; give them with --calib FILE "
                                         "(K and T_cam_lidar, or KITTI's P2 and Tr)")
-        return Calib(P2=P, Tr=Tr), rectify
+        return Calib(P2=P, Tr=Tr), rectify, (size if min(size) > 0 else None)
 
     def _message(self, k: int, i: int):
         conns, t = self._conns[k], self._log_times[i][k]
@@ -263,6 +264,11 @@ class BagSequence(SensorSequence):
                                              f"({e})") from None
         if rgb.ndim == 2:
             rgb = cv2.cvtColor(rgb, cv2.COLOR_GRAY2RGB)
+        if self._info_size is not None and (rgb.shape[1], rgb.shape[0]) != self._info_size:
+            w, h = self._info_size
+            raise D3LVOInputError(self.root, f"the CameraInfo gives {w}x{h} images, but frame {i}'s image on "
+                                             f"{self._conns[0][0].topic} is {rgb.shape[1]}x{rgb.shape[0]}: its "
+                                             "intrinsics are for another resolution (--calib FILE gives the right ones)")
         if self._rectify is not None:
             rgb = cv2.remap(rgb, *self._rectify, cv2.INTER_LINEAR)
         return np.ascontiguousarray(rgb)
@@ -277,7 +283,12 @@ def _field(msg, name: str):
 
 
 def _info_topic(conns, image_topic: str) -> str | None:
-    """The CameraInfo beside the image topic (`/cam/image_raw` -> `/cam/camera_info`), if there is one."""
+    """The CameraInfo beside the image topic (`/cam/image_raw` -> `/cam/camera_info`, also from an
+    image_transport topic `/cam/image_raw/compressed`), if there is one."""
+    for transport in ("/compressed", "/compressedDepth", "/theora", "/zstd"):
+        if image_topic.endswith(transport):
+            image_topic = image_topic[: -len(transport)]
+            break
     ns = image_topic.rsplit("/", 1)[0]
     infos = [c.topic for c in conns if c.msgtype == INFO_TYPE]
     near = [t for t in infos if t.rsplit("/", 1)[0] == ns]
