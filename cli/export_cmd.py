@@ -103,6 +103,10 @@ def export_command(
                                     "to convert with --precision fp16|int8)")
     if calib_seq and precision != "int8":
         raise D3LVOInputError(calib_seq[0], "--calib-seq calibrates an INT8 export: it needs --precision int8")
+    for s in calib_seq:  # before the fp32 export that precedes the calibration
+        from d3lvo_deploy.sequence import KittiSequence
+
+        KittiSequence.open(s)
     if onnx_dir is not None:
         given = [f"--{name.replace('_', '-')}" for name in ("opset", "height", "width", "dynamic_batch")
                  if given_on_command_line(ctx, name)] + (["--set"] if given_on_command_line(ctx, "solver") else [])

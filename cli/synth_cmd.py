@@ -44,7 +44,7 @@ def synth_command(
     from d3lvo_deploy.extras import require
 
     require("embreex", what="d3lvo synth")
-    from d3lvo_deploy.synth.generator import SynthConfig, check_config, generate
+    from d3lvo_deploy.synth.generator import SynthConfig, check_config, check_output, generate, make_poses
 
     width, height = parse_size(size)
     if motion_from is not None and not motion_from.is_file():
@@ -53,6 +53,8 @@ def synth_command(
                       motion_from=str(motion_from) if motion_from else None, motion_start=motion_start,
                       write_depth=depth, traffic=traffic, sensor_effects=sensor_effects)
     check_config(cfg)
+    check_output(out, cfg, resume)  # before the progress bar: a refusal is one line
+    make_poses(cfg)  # reads --motion-from (a fraction of a second)
     t0 = time.perf_counter()
     with frame_progress() as bar:
         task = bar.add_task("synth", total=frames, rate="")

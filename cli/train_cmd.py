@@ -73,9 +73,27 @@ def train_command(
     """  # noqa: E501 (typer keeps a docstring's line breaks in --help)
     opts = {k: v for k, v in locals().items() if k != "ctx"}
     file: dict = {"model": {}, "train": {}, "loss": {}, "augment": {}}
+    from_file: set[str] = set()
     if config is not None:
-        file = _apply_config(ctx, opts, config)
+        file, from_file = _apply_config(ctx, opts, config)
+    if opts["resume"] is not None:
+        _continue_as_trained(ctx, opts, from_file)
     _train(file=file, **opts)
+
+
+def _continue_as_trained(ctx: typer.Context, opts: dict, from_file: set[str]) -> None:
+    """A bare `--resume ck.pt` continues the checkpoint's model: its mode, completion and pose
+    head where neither the command line nor the config names them (their defaults would be
+    another model, refused)."""
+    from d3lvo_deploy.extras import require
+
+    require("torch", what="d3lvo train")
+    from models.checkpoint import load_checkpoint
+
+    trained = load_checkpoint(opts["resume"])["config"]
+    for name in ("mode", "completion", "pose_head"):
+        if not given_on_command_line(ctx, name) and name not in from_file:
+            opts[name] = getattr(trained, name)
 
 
 # [train] / [model] / [loss] keys that are also command-line options: (table, key) -> option
@@ -89,19 +107,27 @@ FILE_OPTIONS = {("train", "data"): "data", ("train", "out"): "out", ("train", "v
                 ("loss", "solver_pose_weight"): "solver_loss"}
 
 
-def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
-    """File values for the options not given on the command line; returns the file's other keys."""
+def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> tuple[dict, set[str]]:
+    """File values for the options not given on the command line; returns the file's other keys
+    and the options the file set."""
     from models.train_config import read_train_config
 
     file = read_train_config(config)
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
-    if given("preset"):  # another preset is another model: the file's model fields make way for it
+    if given("preset") and opts["preset"] != file["model"].get("preset", "default"):
+        # another preset is another model: the file's model fields make way for it, said by name
+        dropped = sorted(k for k in file["model"] if k not in ("preset", "mode", "completion", "pose_head"))
+        if dropped:
+            console.print(f"[yellow]note[/] --preset {opts['preset']} replaces {config}'s preset "
+                          f"{file['model'].get('preset', 'default')!r}, and with it its [model] "
+                          f"{', '.join(dropped)}", highlight=False)
         file["model"] = {k: v for k, v in file["model"].items() if k in ("mode", "completion", "pose_head")}
     if given("resume"):  # a resumed run takes its weights from the checkpoint, never from init
         file["train"].pop("init", None)
     if not given("out") and not given("resume") and file["train"].get("out") and Path(file["train"]["out"]).exists():
         raise D3LVOInputError(config, f"its out {file['train']['out']} exists already: --out NEW repeats the "
                                       f"training elsewhere, --resume {file['train']['out']} continues it")
+    set_here = set()
     for (table, key), name in FILE_OPTIONS.items():
         if key not in file[table]:
             continue
@@ -112,7 +138,8 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
             elif key in ("out", "init", "depth_cache") and value is not None:
                 value = Path(value)
             opts[name] = value
-    return file
+            set_here.add(name)
+    return file, set_here
 
 
 def _train(data, out, config, val, steps, resume, stop_at, mode, completion, preset, pose_head, init, batch_size, lr,
@@ -120,7 +147,7 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
     from d3lvo_deploy.extras import require
 
     require("torch", what="d3lvo train")
-    from dataclasses import replace
+    from dataclasses import fields, replace
 
     from models.checkpoint import load_checkpoint
     from models.config import SOLVER_KEYS
@@ -161,11 +188,19 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         if not d.is_dir():
             raise D3LVOInputError(d, "sequence folder not found")
         # read every sequence's layout and poses now, so a bad folder is one error before the bar
-        if KittiSequence.open(d).ground_truth is None:
+        s = KittiSequence.open(d)
+        if s.ground_truth is None:
             raise D3LVOInputError(d, "has no ground-truth poses (poses.txt inside, or poses/NN.txt beside "
                                      "sequences/NN): training and validation need them")
+        if len(s) < 2:
+            raise D3LVOInputError(d, f"has {len(s)} frame: training and validation need pairs, two frames at least")
     if int(os.environ.get("RANK", "0")) == 0:  # the rank that writes the checkpoints
         _check_out(Path(out))
+        if resume is None:  # a new training would overwrite an earlier one's weights without a word
+            old = [p for p in (Path(out), best_path(out)) if p.is_file()]
+            if old:
+                raise D3LVOInputError(old[0], f"exists already, from an earlier training: --resume {out} continues it; "
+                                              "a new training needs another --out (or the old files moved away)")
     if resume is not None:
         ck = load_checkpoint(resume)
         last = min(steps, stop_at) if stop_at is not None else steps
@@ -180,6 +215,11 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         carried = preset_keys + tuple(k for k in SOLVER_KEYS if k not in settings)
         if replace(cfg, **{k: getattr(ck["config"], k) for k in carried}) == replace(ck["config"], **settings):
             cfg = replace(ck["config"], **settings)
+        else:  # another model than the checkpoint's: one line now, not after the first steps
+            asked = replace(cfg, **{k: getattr(ck["config"], k) for k in carried})
+            differ = sorted(f.name for f in fields(asked) if getattr(asked, f.name) != getattr(ck["config"], f.name))
+            raise D3LVOInputError(resume, f"was trained as another model than asked (differs in: {', '.join(differ)}); "
+                                          "leave those options out to continue it as it was")
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)
     try:
         LossConfig(**file["loss"])
@@ -223,8 +263,11 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
             rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
         except TrainingInterrupted as e:
             bar.stop()
-            console.print(f"[yellow]interrupted[/] at step {e.step}: saved {e.path}; continue with --resume {e.path}",
-                          highlight=False)
+            if e.step and Path(e.path).is_file():
+                console.print(f"[yellow]interrupted[/] at step {e.step}: saved {e.path}; continue with --resume "
+                              f"{e.path}", highlight=False)
+            else:
+                console.print("[yellow]interrupted[/] before the first step: nothing was saved", highlight=False)
             raise typer.Exit(130) from None
     if rank0:
         if rec.get("step") is None or not Path(out).is_file():
@@ -264,6 +307,9 @@ def _check_out(out: Path) -> None:
     before it would be lost."""
     if out.is_dir():
         raise D3LVOInputError(out, "is a folder; --out names the checkpoint file to write (e.g. runs/model.pt)")
+    blocker = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise D3LVOInputError(out, f"cannot be written: {blocker} is a file, not a folder")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         probe = out.with_name(f"{out.name}.probe{os.getpid()}")  # one per process under torchrun

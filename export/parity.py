@@ -87,7 +87,9 @@ def _torch_model(ckpt: Path, manifest: dict):
     same = {k: v for k, v in cfg.to_dict().items() if k not in ("height", "width")}
     mine = {k: v for k, v in ck["config"].to_dict().items() if k not in ("height", "width")}
     if same != mine:
-        raise D3LVOInputError(ckpt, "the ONNX folder was exported with another model config")
+        differ = sorted(k for k in set(same) | set(mine) if same.get(k) != mine.get(k))
+        raise D3LVOInputError(ckpt, f"the ONNX folder was exported with another model config (differs in: "
+                                    f"{', '.join(differ[:8])}{', ...' if len(differ) > 8 else ''})")
     if manifest.get("checkpoint", {}).get("sha256") not in (None, sha256(Path(ckpt))):
         raise D3LVOInputError(ckpt, "the ONNX folder was exported from another checkpoint (sha256 differs)")
     return build_model({**ck, "config": cfg})

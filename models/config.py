@@ -209,6 +209,20 @@ class D3LVOConfig:
             raise ValueError("pyramid levels are 0..3")
         if len(self.completion_widths) != 3:
             raise ValueError("completion_widths needs 3 values (h/2, h/4, h/8)")
+        # layer widths: so many channels per level, each a whole number above 0 (a layer of 0 or
+        # -32 channels would otherwise fail inside torch, in a traceback)
+        for key, count in (("completion_widths", 3), ("rgb_widths", 4), ("depth_widths", 4), ("feature_widths", 4),
+                           ("flow_hidden", 2), ("pose_hidden", 3)):
+            widths = getattr(self, key)
+            if len(widths) != count or not all(isinstance(w, int) and not isinstance(w, bool) and w >= 1
+                                               for w in widths):
+                raise ValueError(f"{key} takes {count} channel counts, each a whole number of 1 or more, not "
+                                 f"{list(widths)}")
+        for key in ("ca_reduction", "xa_dim", "cost_width", "depth_gate_width", "context_width"):
+            if not (isinstance(getattr(self, key), int) and getattr(self, key) >= 1):
+                raise ValueError(f"{key} must be a whole number of 1 or more, not {getattr(self, key)!r}")
+        if not (isinstance(self.search_range, int) and self.search_range >= 1):
+            raise ValueError(f"search_range must be a whole number of 1 or more, not {self.search_range!r}")
         if self.pose_head not in ("auto", "gauss_newton", "mlp", "points"):
             raise ValueError(f"pose_head must be auto, gauss_newton, mlp or points, not {self.pose_head!r}")
         if self.pose_head in ("gauss_newton", "points") and not self.uses_depth:

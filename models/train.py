@@ -122,12 +122,14 @@ def validate(model: D3LVO, seqs: list[str]) -> dict:
     """t_rel/r_rel (when the path is long enough), ATE and RPE per validation sequence, and the
     pair errors of `pair_metrics` next to their baselines."""
     out = {}
-    for s in seqs:
+    names = [Path(s).name for s in seqs]
+    for s, name in zip(seqs, names):
+        label = name if names.count(name) == 1 else str(s)  # A/sequences/09 and B/sequences/09 both kept
         est = predict_sequence(model, s)
         gt = KittiSequence.open(s).ground_truth
-        res = evaluate(gt, Trajectory.from_poses(est), name=Path(s).name)
-        out[Path(s).name] = {k: v for k, v in res.to_dict().items() if k in ("t_rel", "r_rel", "ate", "rpe_t", "rpe_r")}
-        out[Path(s).name].update(pair_metrics(model, [s]))
+        res = evaluate(gt, Trajectory.from_poses(est), name=label)
+        out[label] = {k: v for k, v in res.to_dict().items() if k in ("t_rel", "r_rel", "ate", "rpe_t", "rpe_r")}
+        out[label].update(pair_metrics(model, [s]))
     return out
 
 

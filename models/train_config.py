@@ -91,6 +91,14 @@ def model_config(path: Path | None, table: dict, **cli) -> D3LVOConfig:
 def write_train_config(path: Path, cfg: D3LVOConfig, tc) -> Path:
     """The resolved configuration of a training run, in the file format `--config` reads."""
     train = {k: v for k, v in asdict(tc).items() if k not in ("augment", "loss")}
+    # absolute paths: `--config THIS_FILE` repeats the run from any folder (a hand-written file's
+    # relative paths are taken from the folder train runs in)
+    absolute = lambda p: str(Path(p).resolve())  # noqa: E731
+    for key in ("data", "val"):
+        train[key] = [absolute(p) for p in train[key]]
+    for key in ("out", "init", "depth_cache"):
+        if train.get(key):
+            train[key] = absolute(train[key])
     text = to_toml({"model": cfg.to_dict(), "train": train, "loss": asdict(tc.loss), "augment": asdict(tc.augment)})
     path.write_text("# d3lvo train --config THIS_FILE repeats this training (--resume to continue it)\n" + text)
     return path

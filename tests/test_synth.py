@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from conftest import shared_path
 
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import relative
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.sequence import KittiSequence
@@ -206,12 +207,18 @@ def test_overwrite_with_fewer_frames_leaves_none_of_the_old_ones(tmp_path):
     from d3lvo_deploy.sequence import KittiSequence
 
     generate(tmp_path / "s", SynthConfig(frames=4, seed=1, width=320, height=96, traffic=3.0))
+    generate(tmp_path / "s", SynthConfig(frames=3, seed=1, width=320, height=96, traffic=3.0), resume=False)
+    assert sorted(p.name for p in (tmp_path / "s" / "motion_2").iterdir()) == ["000000.png", "000001.png", "000002.png"]
+    # without traffic: the earlier drive's flow, masks and shadows go, which training would read
     generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96), resume=False)
     seq = KittiSequence.open(tmp_path / "s")  # 2 images, 2 scans, 2 times, 2 poses
     assert len(seq) == 2 and len(seq.ground_truth) == 2
-    assert sorted(p.name for p in (tmp_path / "s" / "motion_2").iterdir()) == ["000000.png", "000001.png"]
-    # a folder this command did not render keeps its files, whatever their numbers
+    assert not any((tmp_path / "s" / d).exists() for d in ("motion_2", "flow_2", "shadow_2"))
+    # a folder of frames this command did not render (a real sequence?) is refused, its files kept
     (tmp_path / "k" / "image_2").mkdir(parents=True)
     (tmp_path / "k" / "image_2" / "000009.png").write_bytes(b"real data")
-    generate(tmp_path / "k", SynthConfig(frames=2, seed=1, width=320, height=96))
+    for resume in (True, False):
+        with pytest.raises(D3LVOInputError, match="holds frames that d3lvo synth did not render"):
+            generate(tmp_path / "k", SynthConfig(frames=2, seed=1, width=320, height=96), resume=resume)
     assert (tmp_path / "k" / "image_2" / "000009.png").read_bytes() == b"real data"
+    assert sorted(p.name for p in (tmp_path / "k").iterdir()) == ["image_2"]

@@ -226,7 +226,17 @@ def test_resume_continues_the_step_count(small_synth, tmp_path):
     assert r.exit_code == 1 and "--set takes solver settings only" in r.output
     r = train_cli("--out", str(tmp_path / "b.pt"), "--steps", "4", "--preset", "small", "--mode", "rgb", "--resume",
                   str(tmp_path / "a.pt"))
-    assert r.exit_code == 1 and "another model config" in r.output and "Traceback" not in r.output
+    assert r.exit_code == 1 and "was trained as another model than asked (differs in: mode)" in r.output, r.output
+    assert "Traceback" not in r.output and "resumed at" not in r.output  # before any work
+    # a new training into an earlier one's checkpoint would overwrite it: refused, naming --resume
+    r = train_cli("--out", str(tmp_path / "a.pt"), "--steps", "1", "--preset", "small", "--batch-size", "1")
+    assert r.exit_code == 1 and "exists already, from an earlier training: --resume" in r.output, r.output
+    # a bare --resume continues the checkpoint's head (the option's default, auto, is another model)
+    r = train_cli("--out", str(tmp_path / "m.pt"), "--steps", "1", "--preset", "small", "--batch-size", "1",
+                  "--pose-head", "mlp")
+    assert r.exit_code == 0, r.output
+    r = train_cli("--out", str(tmp_path / "m.pt"), "--steps", "2", "--batch-size", "1", "--resume", str(tmp_path / "m.pt"))
+    assert r.exit_code == 0 and load_checkpoint(tmp_path / "m.pt")["config"].pose_head == "mlp", r.output
 
 
 def test_resume_equals_an_uninterrupted_run(small_synth, tmp_path):
@@ -449,12 +459,33 @@ flip = 0.0
                         ("[model]\nflow_levels = [1, 2]\n", "flow_levels must run coarse to fine"),
                         ("[train]\nsteps = 'many'\n", "[train] steps = 'many'"),
                         ("[train]\nbatch_norm = 'global'\n", "[train] batch_norm must be one of sync, local, frozen"),
+                        ("[model]\nfeature_widths = [16, 48]\n", "feature_widths takes 4 channel counts"),
+                        ("[model]\nfeature_widths = [16, 32, -32, 64]\n", "feature_widths takes 4 channel counts"),
                         ("[optimizer]\nlr = 1\n", "unknown table [optimizer]")):
         bad = tmp_path / "bad.toml"
         bad.write_text(text)
         r = runner.invoke(app, ["train", "--config", str(bad)])
         assert r.exit_code == 1 and words in r.output and str(bad) in r.output, (text, r.output)
         assert len(r.output.strip().splitlines()) == 1, r.output
+
+
+def test_a_validation_sequence_of_one_frame_stops_before_any_work(small_synth, tmp_path):
+    """A pair needs two frames: said before the progress bar, not at the first validation."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    one = tmp_path / "one"
+    for d in ("image_2", "velodyne"):
+        (one / d).mkdir(parents=True)
+    shutil.copy(small_synth / "image_2" / "000000.png", one / "image_2")
+    shutil.copy(small_synth / "velodyne" / "000000.bin", one / "velodyne")
+    shutil.copy(small_synth / "calib.txt", one)
+    (one / "poses.txt").write_text((small_synth / "poses.txt").read_text().splitlines()[0] + "\n")
+    r = CliRunner().invoke(app, ["train", "--data", str(small_synth), "--val", str(one), "--out", str(tmp_path / "a.pt"),
+                                 "--preset", "small", "--steps", "1"])
+    assert r.exit_code == 1 and "has 1 frame: training and validation need pairs" in r.output, r.output
+    assert not (tmp_path / "a.pt").exists() and not (tmp_path / "a.toml").exists()
 
 
 def test_paper_preset_is_the_papers_network():

@@ -189,37 +189,60 @@ def check_config(cfg: SynthConfig) -> None:
 FRAME_FOLDERS = ("image_2", "velodyne", "depth_2", "motion_2", "flow_2", "shadow_2")
 
 
-def _drop_other_frames(out: Path, frames: int) -> None:
-    """Files of frames beyond this render's (an earlier, longer render into the folder, then
-    --overwrite): left there, the folder would hold more images than poses."""
+def _frame_folders(cfg: SynthConfig) -> tuple[str, ...]:
+    """The folders a render with these settings writes."""
+    return ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()) + \
+        (("motion_2", "flow_2", "shadow_2") if cfg.traffic else ())
+
+
+def _drop_stale(out: Path, cfg: SynthConfig) -> None:
+    """What an earlier render left that this one will not write again (--overwrite): frames
+    beyond its count, and whole target folders its settings do not write (an earlier drive's
+    flow, motion masks or depth, which training would otherwise read beside the new images)."""
+    keep = _frame_folders(cfg)
     for d in FRAME_FOLDERS:
         for f in (out / d).glob("*") if (out / d).is_dir() else ():
-            if f.stem.isdigit() and int(f.stem) >= frames:
+            if f.stem.isdigit() and (d not in keep or int(f.stem) >= cfg.frames):
                 f.unlink()
+        if d not in keep and (out / d).is_dir() and not any((out / d).iterdir()):
+            (out / d).rmdir()
+
+
+def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
+    """What `out` may hold: nothing, or this command's render of these settings (resumed), or of
+    any settings with --overwrite (`resume` False). Frames it did not render (no synth.json: a
+    real KITTI sequence?) are refused either way: their images would stay beside new poses and
+    calibration."""
+    meta_path = Path(out) / "synth.json"
+    if not meta_path.is_file():
+        if any((out / d).is_dir() and any((out / d).iterdir()) for d in FRAME_FOLDERS):
+            raise D3LVOInputError(out, "holds frames that d3lvo synth did not render (no synth.json): use an empty or "
+                                       "new --out")
+        return
+    if resume:
+        old, new = json.loads(meta_path.read_text()), json.loads(json.dumps(cfg.meta()))
+        if old != new:
+            key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
+            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
+                                       f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
+                                       "it again")
 
 
 def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
              resume: bool = True) -> Path:
     out = Path(out)
     check_config(cfg)
+    check_output(out, cfg, resume)
+    meta = cfg.meta()
+    meta_path = out / "synth.json"
+    poses = make_poses(cfg)  # reads --motion-from: a bad file is refused before any folder is made
     try:
-        for d in ("image_2", "velodyne") + (("depth_2",) if cfg.write_depth else ()) + \
-                (("motion_2", "flow_2", "shadow_2") if cfg.traffic else ()):
+        for d in _frame_folders(cfg):
             (out / d).mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out, f"cannot create the output folder ({e.strerror})") from None
-    meta = cfg.meta()
-    meta_path = out / "synth.json"
-    if meta_path.is_file() and resume:
-        old, new = json.loads(meta_path.read_text()), json.loads(json.dumps(meta))
-        if old != new:
-            key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
-            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
-                                       f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
-                                       "it again")
     if not resume and meta_path.is_file():  # --overwrite of a folder this command rendered
-        _drop_other_frames(out, cfg.frames)
-    poses = make_poses(cfg)
+        _drop_stale(out, cfg)
     calib = kitti_calib(cfg.width, cfg.height)
     meta_path.write_text(json.dumps(meta, indent=2))
     (out / "calib.txt").write_text(calib.to_text())
