@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -176,8 +175,9 @@ def bench_command(
         raise D3LVOInputError(None, "--ov-precision applies to OpenVINO: add openvino to --backend")
     for b in BACKENDS if engines is None else engines:
         SessionConfig(backend=b, ov_precision=ov_precision if b == "openvino" else "f32", threads=threads).check()
-    # 0: OMP_NUM_THREADS where set, else every core; the table and --json say how many that is
-    threads = SessionConfig(threads=threads).engine_threads or (os.cpu_count() or 1)
+    # 0: as `d3lvo run` takes them (OMP_NUM_THREADS where set, else one per physical core); the
+    # table and --json say how many that is
+    threads = SessionConfig(threads=threads).threads_taken
     if engines is not None and "openvino" in engines:
         from d3lvo_deploy.extras import require
 

@@ -521,13 +521,14 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     total = sum(len(plan_chunks(len(s), chunk, overlap)) for s in seqs.values())
     # ground truth checked before the work, as a single run's: one that does not fit is a warning
     # and its sequence goes unscored; the others are still scored
-    scored = []
+    scored, misfit = [], []
     for n, s in seqs.items():
         try:
             if s.ground_truth is not None:
                 scored.append(n)
         except D3LVOInputError as e:
             console.print(f"[yellow]warning[/] {escape(str(e))}; sequence {n} runs without scoring", highlight=False)
+            misfit.append(n)
     # the machine's cores split between the workers, on the engine --backend names (resolved here,
     # so every worker runs the same one)
     sc = SessionConfig(threads=max(1, (os.cpu_count() or 1) // max(workers, 1)), backend=backend)
@@ -541,9 +542,10 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
                              on_sequence=lambda n, p, r: console.print(f"{n}: {p} (overlap residual {r:.1e} m)",
                                                                          highlight=False))
     console.print(f"{len(residuals)} sequences in {time.perf_counter() - t0:.1f} s", highlight=False)
-    unscored = [n for n in names if n not in scored]
-    if unscored:
-        console.print(f"not scored (no ground truth that fits): {', '.join(unscored)}", highlight=False)
+    absent = [n for n in names if n not in scored and n not in misfit]
+    for what, which in (("ground truth that does not fit", misfit), ("no ground truth", absent)):
+        if which:
+            console.print(f"not scored ({what}): {', '.join(which)}", highlight=False)
     pairs = [(seqs[n].gt_path, out_dir / f"{n}.txt") for n in scored]
     if pairs:
         out.print(report_table(evaluate_files(pairs)))

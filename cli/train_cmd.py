@@ -114,12 +114,12 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> tuple[dict, s
 
     file = read_train_config(config)
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
-    if given("preset") and opts["preset"] != file["model"].get("preset", "default"):
-        # another preset is another model: the file's model fields make way for it, said by name
+    if given("preset") and opts["preset"] != file["model"].get("preset"):
+        # another preset is another model (a file that names none, e.g. one a training wrote, is
+        # read as sizes and levels of its own): the file's model fields make way, said by name
         dropped = sorted(k for k in file["model"] if k not in ("preset", "mode", "completion", "pose_head"))
         if dropped:
-            console.print(f"[yellow]note[/] --preset {opts['preset']} replaces {config}'s preset "
-                          f"{file['model'].get('preset', 'default')!r}, and with it its [model] "
+            console.print(f"[yellow]note[/] --preset {opts['preset']} replaces {config}'s [model] "
                           f"{', '.join(dropped)}", highlight=False)
         file["model"] = {k: v for k, v in file["model"].items() if k in ("mode", "completion", "pose_head")}
     if given("resume"):  # a resumed run takes its weights from the checkpoint, never from init
@@ -216,8 +216,8 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         if replace(cfg, **{k: getattr(ck["config"], k) for k in carried}) == replace(ck["config"], **settings):
             cfg = replace(ck["config"], **settings)
         else:  # another model than the checkpoint's: one line now, not after the first steps
-            asked = replace(cfg, **{k: getattr(ck["config"], k) for k in carried})
-            differ = sorted(f.name for f in fields(asked) if getattr(asked, f.name) != getattr(ck["config"], f.name))
+            asked, trained = replace(cfg, **{k: getattr(ck["config"], k) for k in carried}), replace(ck["config"], **settings)
+            differ = sorted(f.name for f in fields(asked) if getattr(asked, f.name) != getattr(trained, f.name))
             raise D3LVOInputError(resume, f"was trained as another model than asked (differs in: {', '.join(differ)}); "
                                           "leave those options out to continue it as it was")
         console.print(f"resumed at step {ck['step']} of {resume}", highlight=False)

@@ -26,7 +26,8 @@ class Calib:
 
     def __post_init__(self):
         """Matrices of the right shape, finite, the extrinsic rigid: a Calib built by hand (the
-        streaming API) is checked as a calibration file is, not at the first projection."""
+        streaming API) is checked as a calibration file is, not at the first projection. Held in
+        float64, as a file's are: a float32 matrix given by hand projects as the file would."""
         try:
             P2 = np.asarray(self.P2, dtype=np.float64)
             Tr = np.asarray(self.Tr, dtype=np.float64)

@@ -7,6 +7,7 @@ frame t-1 of the next pair. Poses are cam0 poses (KITTI convention), first frame
 from __future__ import annotations
 
 import functools
+import os
 import time
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,8 +44,9 @@ def check_frame_size(image: np.ndarray, width: int, height: int) -> None:
         raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {width}x{height}")
 
 
-# columns a scan may have: x y z, then intensity and what else a driver writes (ring, time)
-MAX_SCAN_COLUMNS = 6
+# a scan's columns: x y z, then intensity and whatever else a driver writes (ring, time, ...);
+# at most this many rows against more columns is a scan passed transposed
+TRANSPOSED_ROWS = 6
 
 
 def rigid_pose(pose, what: str) -> np.ndarray:
@@ -77,10 +79,11 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
         got = f"an array of {points.dtype}" if isinstance(points, np.ndarray) else type(points).__name__
         raise D3LVOInputError(None, f"{source}: points must be a numeric (N,4) array (x, y, z, intensity), "
                                     f"got {got}") from None
-    if pts.ndim != 2 or not 3 <= pts.shape[1] <= MAX_SCAN_COLUMNS:
-        hint = " (transposed? a scan is one point per row)" if pts.ndim == 2 and pts.shape[0] in (3, 4) else ""
-        raise D3LVOInputError(None, f"{source}: points must be an (N,3) or (N,4) array (up to {MAX_SCAN_COLUMNS} "
-                                    f"columns, x y z first), got shape {pts.shape}{hint}")
+    transposed = pts.ndim == 2 and 3 <= pts.shape[0] <= TRANSPOSED_ROWS < pts.shape[1]
+    if pts.ndim != 2 or pts.shape[1] < 3 or transposed:
+        hint = " (transposed? a scan is one point per row)" if transposed else ""
+        raise D3LVOInputError(None, f"{source}: points must be an (N,3) or (N,4) array (x y z first; further "
+                                    f"columns are ignored), got shape {pts.shape}{hint}")
     # per coordinate, not np.all(..., axis=1): that reduction over rows of 3 took 2.1 ms per scan, this 0.15
     finite = np.isfinite(pts[:, 0]) & np.isfinite(pts[:, 1]) & np.isfinite(pts[:, 2])
     if not finite.all():
@@ -128,12 +131,12 @@ class Odometry:
 
     def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
                  model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
-        self.cold_start = cold_start
-        self.model = model if model is not None else StageModel(model_dir, sc)
-        if not isinstance(calib, (Calib, str, Path)):
+        if not isinstance(calib, (Calib, str, os.PathLike)):  # before the model loads
             raise D3LVOInputError(None, f"calib must be a Calib or the path of a calibration file, got "
                                         f"{type(calib).__name__}")
         self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
+        self.cold_start = cold_start
+        self.model = model if model is not None else StageModel(model_dir, sc)
         # what the first frame's check against the calibration names (`calib.check_fit`); `d3lvo
         # run` checks before it opens the model and sets `fit_checked`
         self.calib_source: str | Path = "the calibration" if isinstance(calib, Calib) else Path(calib)

@@ -22,6 +22,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from .calib import check_fit
 from .errors import D3LVOInputError
 from .geometry import se3_inv
 from .odometry import Odometry
@@ -83,6 +84,7 @@ def _model(model_dir: str, sc: SessionConfig) -> StageModel:
 def run_chunk(c: Chunk, model_dir: str, sc: SessionConfig) -> tuple[Chunk, np.ndarray]:
     seq = KittiSequence.open(c.seq_dir)
     odo = Odometry(model_dir, seq.calib, sc, model=_model(model_dir, sc))
+    odo.fit_checked = True  # `run_many` checked each sequence's first frame before fanning out
     need_scan = odo.model.depth_input != "none"
     poses = []
     for i in range(c.start, c.end):
@@ -192,6 +194,8 @@ def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, en
     chunks, expected = [], {}
     for name, d in seq_dirs.items():
         seq = KittiSequence.open(d)
+        first = seq.image(0)  # the calibration against the first frame, once per sequence (`calib.check_fit`)
+        check_fit(seq.calib, first.shape[1], first.shape[0], seq.scan(0), seq.calib_path, f"{name}/{seq.frame_names[0]}")
         ranges = plan_chunks(len(seq), chunk, overlap)
         expected[name] = len(ranges)
         chunks += [Chunk(name, str(d), s, e) for s, e in ranges]

@@ -212,12 +212,12 @@ class D3LVOConfig:
         # layer widths: so many channels per level, each a whole number above 0 (a layer of 0 or
         # -32 channels would otherwise fail inside torch, in a traceback)
         for key, count in (("completion_widths", 3), ("rgb_widths", 4), ("depth_widths", 4), ("feature_widths", 4),
-                           ("flow_hidden", 2), ("pose_hidden", 3)):
+                           ("flow_hidden", 2), ("pose_hidden", None)):  # the MLP: any number of layers
             widths = getattr(self, key)
-            if len(widths) != count or not all(isinstance(w, int) and not isinstance(w, bool) and w >= 1
-                                               for w in widths):
-                raise ValueError(f"{key} takes {count} channel counts, each a whole number of 1 or more, not "
-                                 f"{list(widths)}")
+            if (len(widths) != count if count else not widths) or not all(
+                    isinstance(w, int) and not isinstance(w, bool) and w >= 1 for w in widths):
+                raise ValueError(f"{key} takes {count or 'one or more'} channel counts, each a whole number of 1 or "
+                                 f"more, not {list(widths)}")
         for key in ("ca_reduction", "xa_dim", "cost_width", "depth_gate_width", "context_width"):
             if not (isinstance(getattr(self, key), int) and getattr(self, key) >= 1):
                 raise ValueError(f"{key} must be a whole number of 1 or more, not {getattr(self, key)!r}")

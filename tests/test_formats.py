@@ -469,10 +469,15 @@ def test_folder_frames_run_in_number_order_and_a_gap_stops(tmp_path):
     assert s.frame_names == ["frame_8", "frame_9", "frame_10"]
     assert all(np.array_equal(s.scan(i), seq.scan(i)) for i in range(3))
     for sub, ext in (("images", ".png"), ("scans", ".npy")):
-        (folder / sub / f"frame_9{ext}").unlink()
+        (folder / sub / f"frame_9{ext}").rename(folder / sub / f"frame_11{ext}")
     (folder / "times.txt").unlink()
     with pytest.raises(D3LVOInputError, match="frame numbers jump from frame_8 to frame_10"):
         open_sequence(folder)
+    # names that count milliseconds, or decimal time stamps, are no frame counts: text order, no gap check
+    for sub, ext in (("images", ".png"), ("scans", ".npy")):
+        for k, stem in enumerate(("frame_8", "frame_10", "frame_11")):
+            (folder / sub / f"{stem}{ext}").rename(folder / sub / f"1630000000.{('05', '1', '15')[k]}{ext}")
+    assert open_sequence(folder).frame_names == ["1630000000.05", "1630000000.1", "1630000000.15"]
 
 
 def test_a_folder_ground_truth_that_does_not_fit_is_a_warning(tmp_path):

@@ -147,4 +147,5 @@ def test_many_sequences_warn_of_ground_truth_that_does_not_fit_and_score_the_res
     text = " ".join(r.output.split())
     assert "01.txt: 2 poses for a sequence of 3 frames" in text and "sequence 01 runs without scoring" in text, r.output
     assert text.index("runs without scoring") < text.index("sequences in")  # before the work
-    assert "not scored (no ground truth that fits): 01, 02" in text and "│ 00 │ 3 │" in text, r.output
+    assert "not scored (ground truth that does not fit): 01" in text and "not scored (no ground truth): 02" in text
+    assert "│ 00 │ 3 │" in text, r.output

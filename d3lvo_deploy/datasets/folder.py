@@ -16,7 +16,7 @@ import numpy as np
 
 from ..calib import parse_calib
 from ..errors import D3LVOInputError
-from ..sequence import FRAME_NUMBERS_BELOW, _check_contiguous, _read_times, read_image, read_scan
+from ..sequence import FRAME_NUMBERS_BELOW, _read_times, read_image, read_scan
 from .base import SensorSequence, as_scan
 
 IMAGE_DIRS = ("image_2", "images", "image", "camera", "rgb", "img")
@@ -90,32 +90,46 @@ def read_any_scan(path: str | Path) -> np.ndarray:
     return reader(path)
 
 
-def natural_key(path: Path) -> list:
-    """frame_9 before frame_10: numbers in a name compare as numbers (as text, unpadded names
-    would run frame 10 before frame 9)."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.stem)]
+def _counted(stems: list[str]) -> list[re.Match] | None:
+    """The names as one prefix and a whole number each (frame_8, frame_9, ..., or 8, 9, 10), or
+    None: other names (a decimal time stamp, 1630000000.15) keep the text order."""
+    parts = [re.fullmatch(r"(.*?)(\d+)", s) for s in stems]
+    if not all(parts) or len({m.group(1) for m in parts}) != 1 or parts[0].group(1).endswith("."):
+        return None
+    return parts
+
+
+def frame_order(files: list[Path]) -> list[Path]:
+    """frame_9 before frame_10: counted names by their number (as text, unpadded names would run
+    frame 10 before frame 9); any other names in text order."""
+    files = sorted(files)
+    counted = _counted([p.stem for p in files])
+    return files if counted is None else [p for _, p in sorted(zip((int(m.group(2)) for m in counted), files))]
 
 
 def _pick(root: Path, names: tuple[str, ...], exts: tuple[str, ...]) -> tuple[Path, list[Path]] | None:
     for n in names:
         d = root / n
         if d.is_dir():
-            files = sorted((p for p in d.iterdir() if p.suffix.lower() in exts), key=natural_key)
+            files = frame_order([p for p in d.iterdir() if p.suffix.lower() in exts])
             if files:
                 return d, files
     return None
 
 
 def _check_numbered(root: Path, names: list[str]) -> None:
-    """Names of one prefix and a frame number (frame_8, frame_9, ...): a gap in the numbers would
-    pair frames that are not consecutive, as in a KITTI folder (`_check_contiguous`)."""
-    parts = [re.fullmatch(r"(.*?)(\d+)", n) for n in names]
-    if not all(parts) or len({m.group(1) for m in parts}) != 1 or all(n.isdigit() for n in names):
+    """Frame counts in the names (frame_8, frame_9, ... or 000008, 000009, ...): a gap in them
+    would pair frames that are not consecutive, as in a KITTI folder. Names that count something
+    else (time stamps, milliseconds from the start: fewer than half their steps are 1) are not
+    checked."""
+    counted = _counted(names)
+    if counted is None or len(names) < 2:
         return
-    ids = np.array([int(m.group(2)) for m in parts])
-    if ids[0] >= FRAME_NUMBERS_BELOW:
+    ids = np.array([int(m.group(2)) for m in counted])
+    steps = np.diff(ids)
+    if ids[0] >= FRAME_NUMBERS_BELOW or np.mean(steps == 1) < 0.5:
         return
-    gaps = np.nonzero(np.diff(ids) != 1)[0]
+    gaps = np.nonzero(steps != 1)[0]
     if len(gaps):
         g = gaps[0]
         raise D3LVOInputError(root, f"frame numbers jump from {names[g]} to {names[g + 1]} (missing frame?)")
@@ -155,7 +169,6 @@ class FolderSequence(SensorSequence):
             raise D3LVOInputError(root, f"{len(img_files)} images in {img_dir.name}/ but {len(scan_files)} scans in "
                                         f"{scan_dir.name}/; images without a scan: {missing[:3]}, scans without an "
                                         f"image: {extra}")
-        _check_contiguous(root, names)
         _check_numbered(root, names)
         if calib is None:
             calib = next((root / n for n in CALIB_NAMES if (root / n).is_file()), root / "calib.txt")
