@@ -136,8 +136,8 @@ def bench_command(
     Example: d3lvo bench --runs 30 --no-torch   (the bundled model; --height 352 --width 1216: the paper's size)
     """
     from d3lvo_deploy.backends import BACKENDS, SessionConfig, available_backends
-    from d3lvo_deploy.bench import (ENGINE_WARMUP, TURN_FRAMES, EngineStream, bench_frames, peak_rss_mb, take_turns,
-                                    warm_up)
+    from d3lvo_deploy.bench import (BESIDE_ROW, ENGINE_WARMUP, TURN_FRAMES, EngineStream, bench_frames, peak_rss_mb,
+                                    take_turns, warm_up)
     from d3lvo_deploy.bundled import find_real_frames
     from d3lvo_deploy.cpu import cpu_info, gemm_peak_gflops
     from d3lvo_deploy.manifest import load_manifest
@@ -288,7 +288,10 @@ def bench_command(
         "prepare_threads": scs[0].preparing_threads,
         "ov_precision": ov_precision if "openvino" in engines else None,
         "cpu": {"model": cpu.model, "cores": cpu.logical_cores, "isa": list(cpu.isa)},
+        # GFLOP/s of the machine; GFLOP per frame of each exported graph (`stage_gflops`) and of each
+        # row the table and `stages_ms` name (`row_gflop`, the graphs that row runs)
         "gemm_peak_gflops": peak, "stage_gflops": gflops,
+        "row_gflop": _row_gflops(gflops, any(BESIDE_ROW in t for t in timed.values())),
         "backends": {b: {"stages_ms": t, "total_ms_median": t["total"]["median"], "total_ms_max": t["total"]["max"],
                          "fps": 1000.0 / t["total"]["median"], "pipelined_fps": pipelined.get(b)}
                      for b, t in timed.items()},

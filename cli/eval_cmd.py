@@ -87,7 +87,8 @@ def eval_command(
     for label, report in reports.items():
         for s in report.sequences:
             for note in s.notes:
-                console.print(f"[yellow]note[/] {escape(label) + ' ' if many else ''}{s.name}: {note}", highlight=False)
+                who = f"{label} {s.name}" if many and label != s.name else s.name
+                console.print(f"[yellow]note[/] {escape(who)}: {note}", highlight=False)
     if plot is not None:
         first = next(iter(reports.values()))
         for s in first.sequences:

@@ -4,6 +4,7 @@ and a results folder that holds everything about the run."""
 from __future__ import annotations
 
 import inspect
+import time
 import typing
 import warnings
 from pathlib import Path
@@ -350,9 +351,14 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     with warnings.catch_warnings(record=True) as caught, frame_progress() as bar:
         warnings.simplefilter("always")
         task = bar.add_task("run", total=plan.n, rate="")
+        first: list = []  # (frames done, time) at the first frame: the rate is frames since over time since
 
         def tick(done: int, total: int, ms: float) -> None:
-            bar.update(task, completed=done, total=total, rate=f"{1000.0 / max(ms, 1e-6):.1f} frames/s")
+            now = time.perf_counter()
+            if not first:
+                first.append((done, now))
+            n, t = done - first[0][0], now - first[0][1]
+            bar.update(task, completed=done, total=total, rate=f"{n / t:.1f} frames/s" if n and t > 0 else "")
 
         try:
             summary = execute_run(plan, progress=tick)

@@ -21,14 +21,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .calib import Calib
+from .calib import Calib, check_fit
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
-from .odometry import FrameTiming, check_frame_size, clean_scan
+from .odometry import FrameTiming, as_calib, check_frame_size, check_image, clean_scan, rigid_pose
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -299,12 +300,18 @@ def motion_cost(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray) -> float:
 
 @dataclass
 class DirectOdometry:
+    """The classical tracker with `Odometry`'s streaming interface (`step`, `reset`, `relative`,
+    `last_timing`) and its input checks. `calib`: a Calib or the path of a calibration file."""
+
     calib: Calib
     cfg: DirectConfig = field(default_factory=DirectConfig)
 
     def __post_init__(self) -> None:
         if len(self.cfg.iterations) != self.cfg.levels:
             raise ValueError(f"DirectConfig: {self.cfg.levels} levels but {len(self.cfg.iterations)} iteration counts")
+        given, self.calib = self.calib, as_calib(self.calib)
+        self.calib_source = "the calibration" if isinstance(given, Calib) else Path(given)
+        self.fit_checked = False  # the first frame against the calibration (`calib.check_fit`)
         self.last_timing = FrameTiming()
         self.reset()
 
@@ -313,19 +320,25 @@ class DirectOdometry:
 
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         self._prev: TrackedFrame | None = None
-        self.pose = np.eye(4) if start_pose is None else np.array(start_pose, dtype=np.float64)
+        self.pose = np.eye(4) if start_pose is None else rigid_pose(start_pose, "reset's start_pose")
+        self.relative = np.eye(4)  # the last frame-to-frame motion in cam0
         self.motion2 = np.eye(4)  # last image_2 motion: the constant-velocity start
         self.cold = True  # no previous motion yet: the first pair starts from `cold_start`'s guesses
         self.frames = 0
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
+        check_image(image)
         if self._prev is not None:
             check_frame_size(image, *self._prev.levels[0].shape[::-1])
+        scan = clean_scan(points, self.scan_source)
+        if not self.fit_checked:  # images and scans the calibration cannot be for, as `Odometry`
+            check_fit(self.calib, image.shape[1], image.shape[0], scan, self.calib_source, "0")
+            self.fit_checked = True
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         P, (h, w) = self.calib.P_velo_to_image2, grey.shape
-        scan = rows_in_view(clean_scan(points, self.scan_source), P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
+        scan = rows_in_view(scan, P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
         depth = sparse_depth(scan, P, w, h) if self.cfg.checks_restart_on_scan else None
@@ -352,14 +365,17 @@ class DirectOdometry:
         first = self._prev is None
         A = self.register_frame(image, points)
         if not first:
-            self.pose = self.pose @ change_frame(A, self.calib.T_cam0_cam2)
+            self.relative = change_frame(A, self.calib.T_cam0_cam2)
+            self.pose = self.pose @ self.relative
         self.frames += 1
         return self.pose.copy()
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None) -> None:
+        pose = rigid_pose(pose, "prime's pose")
+        previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         self._prev = self._frame(image, points)
-        self.pose = np.array(pose, dtype=np.float64)
+        self.pose = pose
         if previous_pose is not None:
             self.motion2 = change_frame(relative(previous_pose, self.pose), self.calib.T_cam2_cam0)
             self.cold = False

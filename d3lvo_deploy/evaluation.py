@@ -53,14 +53,15 @@ class EvalReport:
 
     @property
     def overall(self) -> dict:
-        """The devkit's aggregate: segments of all sequences pooled, so longer sequences weigh more."""
+        """The devkit's aggregate: segments of all sequences pooled, so longer sequences weigh more;
+        ATE the RMSE over every frame of them all (each sequence's RMSE, pooled), RPE the mean."""
         rows = np.concatenate([s.segment_rows for s in self.sequences]) if self.sequences else np.zeros((0, 5))
         t_rel, r_rel = metrics.rel_errors(rows)
         frames = np.array([s.frames for s in self.sequences], dtype=np.float64)
         return {
             "t_rel": None if math.isnan(t_rel) else t_rel,
             "r_rel": None if math.isnan(r_rel) else r_rel,
-            "ate": float(np.average([s.ate for s in self.sequences], weights=frames)),
+            "ate": float(np.sqrt(np.average(np.square([s.ate for s in self.sequences]), weights=frames))),
             "rpe_t": _finite_average([s.rpe_t for s in self.sequences], frames),
             "rpe_r": _finite_average([s.rpe_r for s in self.sequences], frames),
             "segments": int(len(rows)),
@@ -168,8 +169,12 @@ def match_frames(gt: Trajectory, est: Trajectory, est_name: str | Path = "estima
     return ids, valid, notes
 
 
-def evaluate(gt: Trajectory, est: Trajectory, align: str = "none", name: str = "",
+def evaluate(gt: Trajectory | np.ndarray, est: Trajectory | np.ndarray, align: str = "none", name: str = "",
              est_name: str | Path = "estimate", gt_name: str | Path | None = None) -> SequenceResult:
+    """The devkit's t_rel / r_rel, ATE and RPE of `est` against `gt` (Trajectory, or (N,4,4) /
+    (N,3,4) pose arrays, one per frame); `align` (ALIGN_MODES) before scoring."""
+    gt = gt if isinstance(gt, Trajectory) else Trajectory.from_poses(gt)
+    est = est if isinstance(est, Trajectory) else Trajectory.from_poses(est)
     est, timed, how = pair_by_time(gt, est)
     if len(est) < 2 or len(gt) < 2:
         raise D3LVOInputError(est_name if len(est) < 2 else gt_name, "need at least 2 poses to evaluate"

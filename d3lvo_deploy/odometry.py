@@ -49,6 +49,22 @@ def check_frame_size(image: np.ndarray, width: int, height: int) -> None:
 TRANSPOSED_ROWS = 6
 
 
+def check_image(image) -> None:
+    """A frame the trackers take: an (H,W,3) uint8 RGB array."""
+    if not isinstance(image, np.ndarray):
+        raise D3LVOInputError(None, f"image must be an (H,W,3) uint8 RGB numpy array, got {type(image).__name__}")
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
+
+
+def as_calib(calib) -> Calib:
+    """A Calib, or one read from the calibration file a path names."""
+    if not isinstance(calib, (Calib, str, os.PathLike)):
+        raise D3LVOInputError(None, f"calib must be a Calib or the path of a calibration file, got "
+                                    f"{type(calib).__name__}")
+    return calib if isinstance(calib, Calib) else parse_calib(calib)
+
+
 def rigid_pose(pose, what: str) -> np.ndarray:
     """A 4x4 float64 copy of `pose`, or one error naming `what`: a NaN or a 3x3 given as a pose
     would otherwise turn every later pose into NaN, or fail at a later step."""
@@ -131,10 +147,7 @@ class Odometry:
 
     def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
                  model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
-        if not isinstance(calib, (Calib, str, os.PathLike)):  # before the model loads
-            raise D3LVOInputError(None, f"calib must be a Calib or the path of a calibration file, got "
-                                        f"{type(calib).__name__}")
-        self.calib = calib if isinstance(calib, Calib) else parse_calib(calib)
+        self.calib = as_calib(calib)  # before the model loads
         self.cold_start = cold_start
         self.model = model if model is not None else StageModel(model_dir, sc)
         # what the first frame's check against the calibration names (`calib.check_fit`); `d3lvo
@@ -197,10 +210,7 @@ class Odometry:
         fixes the view), with `threads` 1. With 2 (`threads` defaults to `self.prepare_threads`,
         from `SessionConfig.preparing_threads`) the solver's frame is made on a second thread
         beside the network's inputs; the same arrays either way."""
-        if not isinstance(image, np.ndarray):
-            raise D3LVOInputError(None, f"image must be an (H,W,3) uint8 RGB numpy array, got {type(image).__name__}")
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise D3LVOInputError(None, f"image must be (H,W,3) uint8 RGB, got {image.dtype} {image.shape}")
+        check_image(image)
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
             return self._prepare(image, points, self.prepare_threads if threads is None else threads)
 

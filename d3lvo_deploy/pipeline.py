@@ -183,7 +183,17 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     fmt = rc.fmt.lower()
     if fmt not in ("kitti", "tum"):
         raise D3LVOInputError(None, f"--pose-format must be kitti or tum, not {rc.fmt!r}")
-    rc = replace(rc, fmt=fmt, end=end)
+    # paths as strings (the API's callers), and the picture interval, as the CLI gives them
+    as_path = lambda p: None if p is None else Path(p)  # noqa: E731
+    rc = replace(rc, fmt=fmt, end=end, out=Path(rc.out), viz_dir=as_path(rc.viz_dir), rerun_path=as_path(rc.rerun_path))
+    if (rc.viz_dir is not None or rc.rerun_path is not None) and not (isinstance(rc.viz_every, int) and rc.viz_every >= 1):
+        raise D3LVOInputError(None, f"viz_every must be a whole number of frames, 1 or more, not {rc.viz_every!r}")
+    if rc.viz_dir is not None and odometry is not None and not hasattr(odometry, "model"):
+        raise D3LVOInputError(rc.viz_dir, "--viz shows the network's inputs and outputs; the direct tracker has none")
+    if model_dir is None and model is None and odometry is None:  # the API's default, as the CLI's
+        from .bundled import bundled_model_dir
+
+        model_dir = bundled_model_dir()
     if rc.rerun_path is not None:
         from .extras import require
 

@@ -25,7 +25,15 @@ class Trajectory:
 
     @classmethod
     def from_poses(cls, poses: np.ndarray, timestamps: np.ndarray | None = None) -> "Trajectory":
-        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        """(N,4,4) poses, or (N,3,4) as KITTI writes them; anything else is one error, not rows
+        of other poses reshaped into these."""
+        poses = np.asarray(poses, dtype=np.float64)
+        if poses.ndim == 3 and poses.shape[1:] == (3, 4):
+            poses = np.concatenate([poses, np.broadcast_to([[[0.0, 0.0, 0.0, 1.0]]], (len(poses), 1, 4))], 1)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise D3LVOInputError(None, f"poses must be (N,4,4) or (N,3,4), got shape {poses.shape}")
+        if timestamps is not None and len(timestamps) != len(poses):
+            raise D3LVOInputError(None, f"{len(timestamps)} timestamps for {len(poses)} poses")
         return cls(poses, np.arange(len(poses)), timestamps)
 
 

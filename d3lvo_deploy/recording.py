@@ -43,7 +43,7 @@ class RerunRecorder:
         self.positions.append(pose[:3, 3].copy())
         self.rec.log("world/trajectory", rr.LineStrips3D([np.array(self.positions)], colors=[[230, 60, 40]]))
         if points is not None and len(points):
-            step = max(1, len(points) // MAX_POINTS)
+            step = max(1, -(-len(points) // MAX_POINTS))  # at most MAX_POINTS
             p = points[::step, :3].astype(np.float64)
             T = pose @ self.T_cam0_velo
             world = p @ T[:3, :3].T + T[:3, 3]

@@ -545,3 +545,36 @@ def test_eval_of_folders_scores_what_has_ground_truth(tmp_path):
     (gt / "00.txt").rename(gt / "01.txt")
     r = runner.invoke(app, ["eval", "--gt", str(gt), "--est", str(est)])
     assert r.exit_code == 1 and "holds no ground truth of the names" in r.output, r.output
+
+
+def test_api_inputs_the_cli_checks_are_checked_from_python_too(tmp_path):
+    """What a Python caller passes where the CLI would have converted or refused it: paths as
+    strings, a picture interval of 0, pose arrays for scoring, (N,3,4) KITTI-shaped poses, a path
+    that is no bag under --format rosbag, and the direct tracker's calibration and poses."""
+    from d3lvo_deploy.direct import DirectOdometry
+    from d3lvo_deploy.evaluation import evaluate
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import Trajectory
+
+    seq = KittiSequence.open(TINY)
+    gt = seq.ground_truth.poses
+    assert evaluate(gt, gt[:, :3]).ate == 0.0  # arrays, KITTI's (N,3,4) too, read as the same poses
+    with pytest.raises(D3LVOInputError, match=r"poses must be \(N,4,4\) or \(N,3,4\), got shape \(9, 4\)"):
+        Trajectory.from_poses(gt[:, :3].reshape(-1, 4))
+    with pytest.raises(D3LVOInputError, match="viz_every must be a whole number of frames, 1 or more"):
+        run_sequence(seq, None, RunConfig(out=str(tmp_path / "p.txt"), viz_dir=str(tmp_path / "v"), viz_every=0))
+    assert not (tmp_path / "p.txt").exists()
+    s = run_sequence(seq, None, RunConfig(out=str(tmp_path / "p.txt"), viz_dir=str(tmp_path / "v"), viz_every=1),
+                     odometry=None)
+    assert s is not None and len(list((tmp_path / "v").glob("*.png"))) == 2  # the bundled model, strings as paths
+    with pytest.raises(D3LVOInputError, match="cannot be read as a ROS 1 / ROS 2 bag"):
+        open_sequence(TINY, fmt="rosbag")
+    direct = DirectOdometry(str(TINY / "calib.txt"))  # a path, as Odometry takes it
+    poses = [direct.step(seq.image(i), seq.scan(i)) for i in range(3)]
+    np.testing.assert_allclose(poses[2], poses[1] @ direct.relative, atol=1e-12)
+    with pytest.raises(D3LVOInputError, match="start_pose must be a 4x4"):
+        direct.reset(np.eye(3))
+    mm = seq.scan(0).copy()
+    mm[:, :3] *= 1000.0
+    with pytest.raises(D3LVOInputError, match="must be in metres"):
+        DirectOdometry(seq.calib).step(seq.image(0), mm)

@@ -161,6 +161,9 @@ def test_several_sequences_pool_segments():
     expect = (a.t_rel * a.segments + b.t_rel * b.segments) / (a.segments + b.segments)
     assert o["t_rel"] == pytest.approx(expect, rel=1e-5)
     assert min(a.t_rel, b.t_rel) < o["t_rel"] < max(a.t_rel, b.t_rel)
+    # ATE is an RMSE: pooled over every frame of both, from the position errors by hand
+    err = [np.linalg.norm(s.gt_poses[:, :3, 3] - s.est_poses[:, :3, 3], axis=1) for s in (a, b)]
+    assert o["ate"] == pytest.approx(float(np.sqrt(np.mean(np.concatenate(err) ** 2))), rel=1e-6)
 
 
 @pytest.mark.parametrize("seq, t_rel, r_rel, ate, rpe_t", [

@@ -167,8 +167,8 @@ class BagSequence(SensorSequence):
         path = Path(path)
         if not path.exists():
             raise D3LVOInputError(path, "bag not found")
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        try:
+        try:  # a path that is no bag fails already here (no metadata.yaml, an unknown suffix)
+            reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except Exception as e:  # noqa: BLE001 - rosbags raises a different type per bag format
             raise D3LVOInputError(path, f"cannot be read as a ROS 1 / ROS 2 bag ({e})") from None
