@@ -185,12 +185,9 @@ def bench_command(
     if profile is not None and engines is not None and "onnxruntime" not in engines:
         raise D3LVOInputError(profile, "--profile writes onnxruntime profiles: include --backend onnxruntime")
     if profile is not None:  # before a minute of benching, not at the first session
-        if profile.exists() and not profile.is_dir():
-            raise D3LVOInputError(profile, "is a file; --profile names a folder for the profiles")
-        try:
-            profile.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise D3LVOInputError(profile, f"cannot create the profile folder ({e.strerror})") from None
+        from d3lvo_deploy.results import make_output_folder
+
+        make_output_folder(profile, "--profile", "the profiles")
     if ckpt is not None or default_network or torch_compile:
         from d3lvo_deploy.extras import require
 

@@ -104,7 +104,7 @@ def export_command(
     if calib_seq and precision != "int8":
         raise D3LVOInputError(calib_seq[0], "--calib-seq calibrates an INT8 export: it needs --precision int8")
     if out.exists() and not out.is_dir():  # before an fp32 export and a calibration that would come first
-        raise D3LVOInputError(out, "is a file; --out names the folder the export writes")
+        raise D3LVOInputError(out, "is a file; --out names the folder for the exported graphs")
     for s in calib_seq:  # before the fp32 export that precedes the calibration
         from d3lvo_deploy.sequence import KittiSequence
 

@@ -54,6 +54,22 @@ def default_folder(base: Path, name: str, now: float | None = None) -> Path:
     raise D3LVOInputError(base, f"a thousand runs of {name} started at {stamp}: no free folder name")
 
 
+def make_output_folder(path: Path, option: str, holds: str) -> Path:
+    """`path` as a folder that can be written (made where missing), or one error naming `option`:
+    found out at the first write, the work before it would be lost."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise D3LVOInputError(path, f"is a file; {option} names the folder for {holds}")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".write_test{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise D3LVOInputError(path, f"cannot write the folder for {holds} ({e.strerror})") from None
+    return path
+
+
 def remove_if_empty(folder: Path) -> None:
     """A run that stopped at its checks leaves no empty results folder behind."""
     try:

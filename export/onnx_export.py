@@ -26,6 +26,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
 from d3lvo_deploy.manifest import sha256_file as sha256
 from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+from d3lvo_deploy.results import make_output_folder
 from models.checkpoint import build_model, load_checkpoint
 from models.config import check_solver_settings, input_size_problem
 from models.d3lvo import D3LVO
@@ -204,16 +205,7 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
     except (TypeError, ValueError) as e:
         raise D3LVOInputError(None, f"--set: {e}") from None
     model = build_model({**ck, "config": cfg})
-    out = Path(ec.out)
-    if out.exists() and not out.is_dir():
-        raise D3LVOInputError(out, "is a file; --out names the folder the export writes")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as e:
-        raise D3LVOInputError(out, f"output folder is not writable ({e.strerror})") from None
+    out = make_output_folder(Path(ec.out), "--out", "the exported graphs")
 
     stages = {"completion": CompletionStage(model), "encoder": EncoderStage(model), "flowpose": FlowPoseStage(model)}
     if splits_classical(model):

@@ -21,6 +21,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.frames import FramePreprocessor
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.onnx_model import StageModel, camera_inputs, flowpose_feeds
+from d3lvo_deploy.results import make_output_folder
 from d3lvo_deploy.sequence import KittiSequence
 
 from .onnx_export import check_graph, sha256
@@ -93,12 +94,7 @@ def quantize_folder(fp32_dir: Path, out_dir: Path, precision: str, calib_seqs: l
         if not calib_seqs:
             raise D3LVOInputError(None, "INT8 needs calibration frames (--calib-seq DIR)")
         feeds = calibration_feeds(fp32_dir, calib_seqs)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise D3LVOInputError(out_dir, "is a file; --out names the folder the export writes")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise D3LVOInputError(out_dir, f"output folder is not writable ({e.strerror})") from None
+    make_output_folder(out_dir, "--out", "the exported graphs")
     for name, st in manifest["stages"].items():
         src, dst = fp32_dir / st["file"], out_dir / st["file"]
         stage_precision = precision

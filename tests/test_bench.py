@@ -135,7 +135,7 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
                         (["--height", "-16", "--width", "64"], "input 64x-16 is too small"),
                         (["--backend", "onnxruntime", "--ov-precision", "bf16"], "--ov-precision applies to OpenVINO"),
                         (["--seq-dir", "nowhere"], "nowhere: sequence folder not found"),
-                        (["--profile", __file__], "is a file; --profile names a folder")):
+                        (["--profile", __file__], "is a file; --profile names the folder for the profiles")):
         r = runner.invoke(app, ["bench", *args])
         assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, (args, r.output)
 
