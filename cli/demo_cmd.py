@@ -83,11 +83,12 @@ def demo_command(
     base = evaluate(seq.ground_truth, read_poses(direct_path), name="synthetic held-out")
     out.print(report_table({"D3LVO (ONNX)": EvalReport([res], "none"),
                             "--method direct (no learning)": EvalReport([base], "none")}))
-    out.print(latency_table(summary.stats()))
-    plot = plot_trajectories(out_dir / "synthetic_heldout.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses},
-                             title=f"held-out synthetic drive: t_rel {_fmt(res.t_rel)} %, "
+    out.print(latency_table(summary))
+    plot = plot_trajectories(out_dir / "synthetic_heldout.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses,
+                                                                 "--method direct": base.est_poses},
+                             title=f"held-out synthetic drive: t_rel {_fmt(res.t_rel)} % (direct {_fmt(base.t_rel)} %), "
                                    f"ATE {res.ate:.2f} m")
-    console.print(f"poses: {poses_path}\nplot:  {plot}", highlight=False)
+    console.print(f"poses: {poses_path} (--method direct: {direct_path.name})\nplot:  {plot}", highlight=False)
 
     real = find_real_frames()
     if real is None:
@@ -100,7 +101,9 @@ def demo_command(
         rp = read_poses(rpath).poses
         dist = float(np.linalg.norm(np.diff(rp[:, :3, 3], axis=0), axis=1).sum())
         rplot = plot_trajectories(out_dir / "real_r0926.png", {"D3LVO (ONNX)": rp}, title="real KITTI 2011_09_26 (no GT)")
-        out.print(f"real frames: {len(rp)} poses, a {dist:.2f} m path estimated. No ground truth "
+        end = ", ".join(f"{v:.2f}" for v in rp[-1, :3, 3])
+        out.print(f"real frames: {len(rp)} poses, a {dist:.2f} m path estimated, ending at ({end}) m in cam0 "
+                  "(docs/evaluation.md compares it with LiDAR-only odometry). No ground truth "
                   "exists for these frames, so no accuracy is claimed; the bundled model was trained on synthetic "
                   "data only and is not meant for real KITTI accuracy.", highlight=False)
         console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)

@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .blas import one_blas_thread
 from .calib import Calib, check_fit
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
@@ -361,9 +362,12 @@ class DirectOdometry:
         return A
 
     def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
-        """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
+        """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates. numpy's BLAS
+        on one thread, as the network's frame work (`blas`): its products are small, and idle
+        BLAS threads would spin on the other core."""
         first = self._prev is None
-        A = self.register_frame(image, points)
+        with one_blas_thread():
+            A = self.register_frame(image, points)
         if not first:
             self.relative = change_frame(A, self.calib.T_cam0_cam2)
             self.pose = self.pose @ self.relative
