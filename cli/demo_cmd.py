@@ -71,7 +71,7 @@ def demo_command(
     with frame_progress() as bar:
         task = bar.add_task("run", total=len(seq), rate="")
         summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True), sc,
-                               progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{1000 / max(ms, 1e-6):.1f} frames/s"))
+                               progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
     res = evaluate(seq.ground_truth, read_poses(poses_path), name="synthetic held-out")
     # the baseline beside it: the model's classical mode, the same solver with every point weighted 1
     direct_path = out_dir / "synthetic_heldout_direct.txt"
@@ -79,7 +79,7 @@ def demo_command(
         task = bar.add_task("direct", total=len(seq), rate="")
         run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
                      odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])),
-                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{1000 / max(ms, 1e-6):.1f} frames/s"))
+                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
     base = evaluate(seq.ground_truth, read_poses(direct_path), name="synthetic held-out")
     out.print(report_table({"D3LVO (ONNX)": EvalReport([res], "none"),
                             "--method direct (no learning)": EvalReport([base], "none")}))

@@ -37,10 +37,12 @@ def latency_table(summary) -> Table:
 
     stats = summary.stats()
     total = summary.latencies_ms.get("total", [])
-    first = len(total) > 2 and int(np.argmax(total)) <= 1  # frame 0 (no pair yet) or the first pair
-    t = Table(title="latency per frame (ms)",
-              caption="max: the run's first frames (the engines warming up; the first pair also tries the cold "
-                      "start's starting motions)" if first else None)
+    # the first two frames timed: a fresh run's frame 0 (no pair yet) and first pair, whose solve
+    # also tries the cold start's starting motions; a resumed run's first two pairs (no cold start)
+    fresh = not getattr(summary, "resumed_from", 0)
+    first = len(total) > 2 and int(np.argmax(total)) <= 1
+    why = "the first pair also tries the cold start's starting motions" if fresh else "warming up"
+    t = Table(title="latency per frame (ms)", caption=f"max: one of the run's first frames ({why})" if first else None)
     for c in ("stage", "mean", "p90", "max"):
         t.add_column(c, justify="right")
     for k in ("read", "project", "completion", "encoder", BESIDE_ROW, "flowpose", "total"):

@@ -329,7 +329,8 @@ class DirectOdometry:
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
-        check_image(image)
+        if not (isinstance(image, np.ndarray) and image.ndim == 2 and image.dtype == np.uint8):
+            check_image(image)  # RGB, or the (H,W) grey the tracker reads anyway
         if self._prev is not None:
             check_frame_size(image, *self._prev.levels[0].shape[::-1])
         scan = clean_scan(points, self.scan_source)
@@ -381,6 +382,7 @@ class DirectOdometry:
         self._prev = self._frame(image, points)
         self.pose = pose
         if previous_pose is not None:
-            self.motion2 = change_frame(relative(previous_pose, self.pose), self.calib.T_cam2_cam0)
+            self.relative = relative(previous_pose, self.pose)
+            self.motion2 = change_frame(self.relative, self.calib.T_cam2_cam0)
             self.cold = False
         self.frames += 1

@@ -8,6 +8,7 @@ digits, which read back to the same float64).
 
 from __future__ import annotations
 
+import numbers
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -186,7 +187,8 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     # paths as strings (the API's callers), and the picture interval, as the CLI gives them
     as_path = lambda p: None if p is None else Path(p)  # noqa: E731
     rc = replace(rc, fmt=fmt, end=end, out=Path(rc.out), viz_dir=as_path(rc.viz_dir), rerun_path=as_path(rc.rerun_path))
-    if (rc.viz_dir is not None or rc.rerun_path is not None) and not (isinstance(rc.viz_every, int) and rc.viz_every >= 1):
+    whole = isinstance(rc.viz_every, numbers.Integral) and not isinstance(rc.viz_every, bool)
+    if (rc.viz_dir is not None or rc.rerun_path is not None) and not (whole and rc.viz_every >= 1):
         raise D3LVOInputError(None, f"viz_every must be a whole number of frames, 1 or more, not {rc.viz_every!r}")
     if rc.viz_dir is not None and odometry is not None and not hasattr(odometry, "model"):
         raise D3LVOInputError(rc.viz_dir, "--viz shows the network's inputs and outputs; the direct tracker has none")

@@ -572,6 +572,12 @@ def test_api_inputs_the_cli_checks_are_checked_from_python_too(tmp_path):
     direct = DirectOdometry(str(TINY / "calib.txt"))  # a path, as Odometry takes it
     poses = [direct.step(seq.image(i), seq.scan(i)) for i in range(3)]
     np.testing.assert_allclose(poses[2], poses[1] @ direct.relative, atol=1e-12)
+    # in cam0: the image_2 motion the solver tracked, moved through the rig (b = K2^-1 P2[:, 3])
+    S = np.eye(4)
+    S[:3, 3] = -np.linalg.solve(seq.calib.P2[:, :3], seq.calib.P2[:, 3])
+    np.testing.assert_allclose(direct.relative, S @ direct.motion2 @ np.linalg.inv(S), atol=1e-12)
+    direct.prime(seq.image(1), seq.scan(1), poses[1], previous_pose=poses[0])
+    np.testing.assert_allclose(direct.relative, np.linalg.inv(poses[0]) @ poses[1], atol=1e-12)
     with pytest.raises(D3LVOInputError, match="start_pose must be a 4x4"):
         direct.reset(np.eye(3))
     mm = seq.scan(0).copy()
