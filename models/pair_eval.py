@@ -9,24 +9,32 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import torch
+
+from d3lvo_deploy.errors import D3LVOInputError
 
 from .checkpoint import build_model, load_checkpoint
 from .train import pair_metrics
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("ckpt")
     ap.add_argument("seqs", nargs="+")
     ap.add_argument("--pairs", type=int, default=48, help="evenly spaced pairs per sequence")
     args = ap.parse_args()
+    if args.pairs < 1:
+        ap.error(f"--pairs must be at least 1, not {args.pairs}")
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
-    model = build_model(load_checkpoint(args.ckpt))
-    for s in args.seqs:
-        m = pair_metrics(model, [s], pairs=args.pairs)
-        print(json.dumps({"sequence": s, **{k: round(v, 4) for k, v in m.items()}}))
+    try:
+        model = build_model(load_checkpoint(args.ckpt))
+        for s in args.seqs:
+            m = pair_metrics(model, [s], pairs=args.pairs)
+            print(json.dumps({"sequence": s, **{k: round(v, 4) for k, v in m.items()}}))
+    except D3LVOInputError as e:  # a missing checkpoint or drive: one line, as the d3lvo commands
+        sys.exit(f"error: {e}")
 
 
 if __name__ == "__main__":

@@ -20,9 +20,11 @@ import numpy as np
 
 from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.points import project
 from d3lvo_deploy.poses import write_poses
+from d3lvo_deploy.results import make_output_folder
 from d3lvo_deploy.sequence import KittiSequence
 
 
@@ -62,6 +64,10 @@ def main(drive: Path, out: Path, shadows: bool) -> None:
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if a != "--shadows"]
-    if len(args) != 2:
+    if len(args) != 2 or any(a.startswith("--") for a in args):
         sys.exit(__doc__)
-    main(Path(args[0]), Path(args[1]), "--shadows" in sys.argv)
+    try:
+        make_output_folder(Path(args[1]).parent, "OUT.txt", "the trajectory")  # before the drive is tracked
+        main(Path(args[0]), Path(args[1]), "--shadows" in sys.argv)
+    except D3LVOInputError as e:
+        sys.exit(f"error: {e}")

@@ -12,7 +12,7 @@ LiDAR-only odometry (KISS-ICP, the `[test]` extra):
   road), moving where none lies within 0.4 m (within 30 m), else left out; then the area under the
   ROC curve of 1 - the point's weight for moving against static points (uniform weights: 0.5).
 
-    .venv/bin/python scripts/real_movers.py [SEQ_DIR]     # ~2 min on 2 cores
+    .venv/bin/python scripts/real_movers.py [SEQ_DIR]     # ~1 min on 2 cores; the boxes are r0926 frame 0's
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 
 from d3lvo_deploy.backends import SessionConfig
 from d3lvo_deploy.bundled import bundled_model_dir
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.lidar_reference import kiss_icp_poses
 from d3lvo_deploy.metrics import auroc
 from d3lvo_deploy.odometry import Odometry
@@ -130,4 +131,11 @@ def main(seq_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/kitti_raw_snippet/sequences/r0926")
+    if len(sys.argv) > 1 and sys.argv[1].startswith("-"):
+        sys.exit(__doc__)
+    # the boxes are drawn on r0926's frame 0: the default is those frames, found from the checkout
+    default = Path(__file__).resolve().parents[1] / "../shared/data/kitti_raw_snippet/sequences/r0926"
+    try:
+        main(sys.argv[1] if len(sys.argv) > 1 else str(default))
+    except D3LVOInputError as e:
+        sys.exit(f"error: {e}")

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import relatives
 from d3lvo_deploy.poses import read_poses
 
@@ -61,7 +62,13 @@ if __name__ == "__main__":
     every = 10
     if "--every" in args:
         i = args.index("--every")
-        every, args = int(args[i + 1]), args[:i] + args[i + 2:]
+        value = args[i + 1] if i + 1 < len(args) else ""
+        if not value.isdigit() or int(value) < 1:
+            sys.exit(f"error: --every takes a number of pairs, 1 or more, not {value!r}")
+        every, args = int(value), args[:i] + args[i + 2:]
     if len(args) < 2:
         sys.exit(__doc__)
-    main(Path(args[0]), [Path(a) for a in args[1:]], every)
+    try:
+        main(Path(args[0]), [Path(a) for a in args[1:]], every)
+    except D3LVOInputError as e:
+        sys.exit(f"error: {e}")

@@ -28,6 +28,7 @@ import numpy as np
 from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.direct import (DirectConfig, DirectOdometry, TrackedFrame, consensus_gain, lidar_depth_error,
                                  motion_cost, track)
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.geometry import change_frame, relative
 from d3lvo_deploy.manifest import load_manifest
 from d3lvo_deploy.poses import read_poses
@@ -74,7 +75,13 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
 
 
 if __name__ == "__main__":
+    unknown = [a for a in sys.argv[1:] if a.startswith("--") and a not in ("--affine-brightness", "--static-only")]
+    if unknown:
+        sys.exit(f"error: unknown option {unknown[0]} (--affine-brightness, --static-only)")
     args = [a for a in sys.argv[1:] if a not in ("--affine-brightness", "--static-only")]
     if len(args) != 2 or not args[1].isdigit():
         sys.exit(__doc__)
-    main(args[0], int(args[1]), "--affine-brightness" in sys.argv, "--static-only" in sys.argv)
+    try:
+        main(args[0], int(args[1]), "--affine-brightness" in sys.argv, "--static-only" in sys.argv)
+    except D3LVOInputError as e:  # a missing drive or poses.txt: one line
+        sys.exit(f"error: {e}")
