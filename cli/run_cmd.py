@@ -37,11 +37,11 @@ def latency_table(summary) -> Table:
 
     stats = summary.stats()
     total = summary.latencies_ms.get("total", [])
-    # the first two frames timed: a fresh run's frame 0 (no pair yet) and first pair, whose solve
-    # also tries the cold start's starting motions; a resumed run's first two pairs (no cold start)
-    fresh = not getattr(summary, "resumed_from", 0)
+    # the first two frames timed: the engines warm up, and the first pair of a run started fresh
+    # or resumed after one pose (no motion to start from) also tries the cold start's motions
+    cold = getattr(summary, "resumed_from", 0) <= 1
     first = len(total) > 2 and int(np.argmax(total)) <= 1
-    why = "the first pair also tries the cold start's starting motions" if fresh else "warming up"
+    why = "the engines warming up" + ("; the first pair also tries the cold start's starting motions" if cold else "")
     t = Table(title="latency per frame (ms)", caption=f"max: one of the run's first frames ({why})" if first else None)
     for c in ("stage", "mean", "p90", "max"):
         t.add_column(c, justify="right")

@@ -67,7 +67,10 @@ if __name__ == "__main__":
     if len(args) != 2 or any(a.startswith("--") for a in args):
         sys.exit(__doc__)
     try:
-        make_output_folder(Path(args[1]).parent, "OUT.txt", "the trajectory")  # before the drive is tracked
+        if Path(args[1]).is_dir():
+            raise D3LVOInputError(Path(args[1]), "is a folder; OUT.txt names the trajectory file to write")
+        KittiSequence.open(args[0])  # the drive, then where its poses go, before it is tracked
+        make_output_folder(Path(args[1]).parent, "OUT.txt's folder", "the trajectory")
         main(Path(args[0]), Path(args[1]), "--shadows" in sys.argv)
     except D3LVOInputError as e:
         sys.exit(f"error: {e}")

@@ -134,7 +134,7 @@ if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1].startswith("-"):
         sys.exit(__doc__)
     # the boxes are drawn on r0926's frame 0: the default is those frames, found from the checkout
-    default = Path(__file__).resolve().parents[1] / "../shared/data/kitti_raw_snippet/sequences/r0926"
+    default = Path(__file__).resolve().parents[2] / "shared/data/kitti_raw_snippet/sequences/r0926"
     try:
         main(sys.argv[1] if len(sys.argv) > 1 else str(default))
     except D3LVOInputError as e:

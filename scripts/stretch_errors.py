@@ -66,6 +66,8 @@ if __name__ == "__main__":
         if not value.isdigit() or int(value) < 1:
             sys.exit(f"error: --every takes a number of pairs, 1 or more, not {value!r}")
         every, args = int(value), args[:i] + args[i + 2:]
+    if any(a.startswith("--") for a in args):
+        sys.exit(f"error: unknown option {next(a for a in args if a.startswith('--'))} (--every N)")
     if len(args) < 2:
         sys.exit(__doc__)
     try:

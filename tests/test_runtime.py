@@ -250,7 +250,7 @@ def test_killed_run_resumes_to_the_same_file(small_model, small_synth, tmp_path)
     assert out.read_text() == full.read_text()
 
 
-def test_a_tum_file_resumes_within_a_micrometre(small_model, small_synth, tmp_path):
+def test_a_tum_file_resumes_within_micrometres(small_model, small_synth, tmp_path):
     """TUM poses are read back from their quaternions, not bit for bit: a resumed run continues
     within a few micrometres of the uninterrupted one (docs/runtime.md; this untrained test model's
     solver is far from converged, which carries the last bits on further), the times the same."""
@@ -591,3 +591,26 @@ def test_demo_checks_its_model_before_rendering(tmp_path):
     r = runner.invoke(app, ["demo", "--onnx", str(tmp_path / "none"), "--frames", "2", "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and "none: model folder not found" in r.output, r.output
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("resumed_from, slowest, words", [
+    (0, 1, "the engines warming up; the first pair also tries the cold start's starting motions"),
+    (1, 0, "the first pair also tries the cold start"),  # resumed after one pose: no motion to start from
+    (3, 1, "the engines warming up)"),  # resumed after two or more: the motion is known, no cold start
+    (0, 5, None)])  # a slow frame later in the run: nothing to explain it away
+def test_the_latency_table_says_when_its_slowest_frame_is_a_first_one(resumed_from, slowest, words):
+    from rich.console import Console
+
+    from cli.run_cmd import latency_table
+    from d3lvo_deploy.pipeline import RunSummary
+
+    total = [40.0] * 8
+    total[slowest] = 400.0
+    s = RunSummary(frames=8 + resumed_from, out=Path("p.txt"), resumed_from=resumed_from, latencies_ms={"total": total})
+    console = Console(width=400, record=True)
+    console.print(latency_table(s))
+    text = " ".join(console.export_text().split())  # the caption wraps at the table's width
+    if words is None:
+        assert "max:" not in text
+    else:
+        assert words in text and ("cold start" in text) == (resumed_from <= 1), text
