@@ -127,7 +127,8 @@ def run_command(
     plot: Path | None = typer.Option(None, "--plot", help="Write the trajectory's top view to this PNG (default: a results "
                                      "folder's trajectory.png, when matplotlib is installed)."),
     provider: str = typer.Option("cpu", "--provider", help="cpu | cuda | tensorrt (falls back to cpu)."),
-    threads: int = typer.Option(0, "--threads", help="Inference threads (0: OMP_NUM_THREADS where set, else all cores)."),
+    threads: int = typer.Option(0, "--threads", help="Threads of every stage: the engines', and OpenCV's "
+                                 "for --method direct (0: OMP_NUM_THREADS where set, else all cores)."),
     backend: str = typer.Option("auto", "--backend", help="onnxruntime | openvino (the \\[openvino] extra) | auto "
                                 "(openvino where installed, else onnxruntime; `d3lvo bench` times both)."),
     ov_precision: str = typer.Option("f32", "--ov-precision", help="With --backend openvino: f32 | bf16 (bf16 uses "
