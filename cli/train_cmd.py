@@ -260,7 +260,8 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
                     console.print(f"  best so far: saved {best_path(out)}", highlight=False)
 
         try:
-            rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step)
+            rec = train(cfg, tc, resume=str(resume) if resume else None, on_step=on_step,
+                        on_note=lambda note: console.print(note, highlight=False))
         except TrainingInterrupted as e:
             bar.stop()
             if e.step and Path(e.path).is_file():

@@ -325,8 +325,9 @@ def _freeze_except(model: torch.nn.Module, prefixes: tuple[str, ...]) -> set[str
 
 
 def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
-          on_step: Callable[[int, dict], None] | None = None) -> dict:
-    """Train; returns the final record (step, losses, validation). `on_step` drives a progress bar."""
+          on_step: Callable[[int, dict], None] | None = None, on_note: Callable[[str], None] | None = None) -> dict:
+    """Train; returns the final record (step, losses, validation). `on_step` drives a progress bar;
+    `on_note` hears what the start took (`--init`'s tensors)."""
     rank, world, distributed = _dist_info()
     device = _device(tc.device, rank)
     if distributed and not dist.is_initialized():
@@ -365,8 +366,14 @@ def train(cfg: D3LVOConfig, tc: TrainConfig, resume: str | None = None,
         for g, base in zip(opt.param_groups, sched.base_lrs):
             g["lr"] = base * lr_factor(step, tc.warmup, tc.steps)
 
-    elif tc.init and load_matching(model, tc.init) == 0:
-        raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to start from")
+    elif tc.init:
+        taken = load_matching(model, tc.init)
+        if taken == 0:
+            raise D3LVOInputError(tc.init, "none of its weights fits this model config (name and shape); nothing to "
+                                           "start from")
+        if on_note is not None and rank == 0:  # what started from them: a partial match is a choice to see
+            on_note(f"--init {tc.init}: {taken} of the model's {len(model.state_dict())} tensors taken (name and "
+                    "shape match); the rest start fresh")
     if tc.batch_norm not in BATCH_NORMS:
         raise ValueError(f"batch_norm must be one of {', '.join(BATCH_NORMS)}, not {tc.batch_norm!r}")
     if distributed and tc.batch_norm == "sync" and device.type == "cuda":

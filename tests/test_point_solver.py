@@ -1226,6 +1226,12 @@ def test_init_takes_matching_weights_and_refuses_a_foreign_checkpoint(tmp_path, 
     tc = TrainConfig(data=[str(small_synth)], out=str(tmp_path / "x.pt"), steps=1, init=str(other))
     with pytest.raises(D3LVOInputError, match="none of its weights fits"):
         train(cfg, tc)
+    # a partial start is said, with the count load_matching took
+    notes: list[str] = []
+    train(cfg, TrainConfig(data=[str(small_synth)], out=str(tmp_path / "y.pt"), steps=1, batch_size=1, init=str(cells)),
+          on_note=notes.append)
+    assert notes == [f"--init {cells}: {taken} of the model's {len(model.state_dict())} tensors taken (name and shape "
+                     "match); the rest start fresh"]
 
 
 def test_pose_error_gradient_through_the_solver_blames_the_moved_points():
