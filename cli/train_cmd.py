@@ -311,10 +311,6 @@ def _check_out(out: Path) -> None:
     blocker = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
     if blocker is not None:
         raise D3LVOInputError(out, f"cannot be written: {blocker} is a file, not a folder")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        probe = out.with_name(f"{out.name}.probe{os.getpid()}")  # one per process under torchrun
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise D3LVOInputError(out, f"cannot write the checkpoint there ({e.strerror})") from None
+    from d3lvo_deploy.results import make_output_folder
+
+    make_output_folder(out.parent, "--out", "the checkpoint")  # its probe file is per process (torchrun)

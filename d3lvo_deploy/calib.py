@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import D3LVOInputError
-from .geometry import make_se3, se3_inv
+from .geometry import is_rigid, make_se3, se3_inv
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ class Calib:
             raise D3LVOInputError(None, f"Calib: Tr must be a 4x4 (or 3x4) LiDAR-to-camera transform, got shape {Tr.shape}")
         if not (np.isfinite(P2).all() and np.isfinite(Tr).all()):
             raise D3LVOInputError(None, "Calib: P2 and Tr must be finite (a NaN or inf entry)")
-        if not np.allclose(Tr[3], [0, 0, 0, 1]) or not np.allclose(Tr[:3, :3] @ Tr[:3, :3].T, np.eye(3), atol=1e-3):
+        if not is_rigid(Tr):
             raise D3LVOInputError(None, "Calib: Tr must be a rigid transform (an orthonormal rotation, last row 0 0 0 1)")
         object.__setattr__(self, "P2", P2)
         object.__setattr__(self, "Tr", Tr)

@@ -21,16 +21,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from .blas import one_blas_thread
-from .calib import Calib, check_fit
+from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
-from .odometry import FrameTiming, as_calib, check_frame_size, check_image, clean_scan, rigid_pose
+from .odometry import (FrameTiming, as_calib, calib_source, check_first_frame, check_frame_size, check_image,
+                       clean_scan, rigid_pose)
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -311,8 +311,8 @@ class DirectOdometry:
         if len(self.cfg.iterations) != self.cfg.levels:
             raise ValueError(f"DirectConfig: {self.cfg.levels} levels but {len(self.cfg.iterations)} iteration counts")
         given, self.calib = self.calib, as_calib(self.calib)
-        self.calib_source = "the calibration" if isinstance(given, Calib) else Path(given)
-        self.fit_checked = False  # the first frame against the calibration (`calib.check_fit`)
+        self.calib_source = calib_source(given)
+        self.fit_checked = False  # `check_first_frame`
         self.last_timing = FrameTiming()
         self.reset()
 
@@ -334,9 +334,7 @@ class DirectOdometry:
         if self._prev is not None:
             check_frame_size(image, *self._prev.levels[0].shape[::-1])
         scan = clean_scan(points, self.scan_source)
-        if not self.fit_checked:  # images and scans the calibration cannot be for, as `Odometry`
-            check_fit(self.calib, image.shape[1], image.shape[0], scan, self.calib_source, "0")
-            self.fit_checked = True
+        check_first_frame(self, image, scan)
         grey = grey_image(image)
         levels = pyramid(grey, self.calib.K2, self.cfg.levels)
         P, (h, w) = self.calib.P_velo_to_image2, grey.shape

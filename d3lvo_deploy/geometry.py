@@ -62,6 +62,11 @@ def change_frame(T_rel: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
     return np.asarray(T_b_a) @ np.asarray(T_rel) @ se3_inv(T_b_a)
 
 
+def is_rigid(T: np.ndarray, atol: float = 1e-3) -> bool:
+    """A 4x4 whose last row is 0 0 0 1 and whose rotation block is orthonormal to `atol`."""
+    return bool(np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=atol))
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     z = np.zeros(v.shape[:-1])

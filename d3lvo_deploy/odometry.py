@@ -22,7 +22,7 @@ from .calib import Calib, check_fit, parse_calib
 from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
-from .geometry import change_frame, relative
+from .geometry import change_frame, is_rigid, relative
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds,
                      textured_points)
@@ -65,6 +65,20 @@ def as_calib(calib) -> Calib:
     return calib if isinstance(calib, Calib) else parse_calib(calib)
 
 
+def calib_source(given) -> str | Path:
+    """What the first frame's check names: the calibration file, or a Calib built by hand."""
+    return "the calibration" if isinstance(given, Calib) else Path(given)
+
+
+def check_first_frame(tracker, image: np.ndarray, scan: np.ndarray | None) -> None:
+    """A tracker's first frame against its calibration (`calib.check_fit`), once: images and
+    scans it cannot be for. `d3lvo run` checks the recording before and sets `fit_checked`."""
+    if not tracker.fit_checked:
+        check_fit(tracker.calib, image.shape[1], image.shape[0], scan if scan is not None else np.zeros((0, 3)),
+                  tracker.calib_source, "0")
+        tracker.fit_checked = True
+
+
 def rigid_pose(pose, what: str) -> np.ndarray:
     """A 4x4 float64 copy of `pose`, or one error naming `what`: a NaN or a 3x3 given as a pose
     would otherwise turn every later pose into NaN, or fail at a later step."""
@@ -76,8 +90,7 @@ def rigid_pose(pose, what: str) -> np.ndarray:
         raise D3LVOInputError(None, f"{what} must be a 4x4 pose matrix, got shape {T.shape}")
     if not np.isfinite(T).all():
         raise D3LVOInputError(None, f"{what} has NaN or inf entries")
-    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-3) \
-            or np.linalg.det(T[:3, :3]) <= 0:
+    if not is_rigid(T) or np.linalg.det(T[:3, :3]) <= 0:
         raise D3LVOInputError(None, f"{what} is not a rigid transform (rotation block not a rotation, or last row "
                                     "not 0 0 0 1)")
     return T
@@ -150,10 +163,7 @@ class Odometry:
         self.calib = as_calib(calib)  # before the model loads
         self.cold_start = cold_start
         self.model = model if model is not None else StageModel(model_dir, sc)
-        # what the first frame's check against the calibration names (`calib.check_fit`); `d3lvo
-        # run` checks before it opens the model and sets `fit_checked`
-        self.calib_source: str | Path = "the calibration" if isinstance(calib, Calib) else Path(calib)
-        self.fit_checked = False
+        self.calib_source, self.fit_checked = calib_source(calib), False  # `check_first_frame`
         self.pre: FramePreprocessor | None = None
         self.last_timing = FrameTiming()
         self.keep_outputs = False  # keep the last frame's intermediate tensors in `last` (for --viz)
@@ -227,10 +237,7 @@ class Odometry:
         t0 = time.perf_counter()
         pre = self._preprocessor(image)
         scan = clean_scan(points, self.scan_source) if self.model.depth_input != "none" else None  # checked before any job starts
-        if not self.fit_checked:  # the first frame: images and scans the calibration cannot be for
-            check_fit(self.calib, image.shape[1], image.shape[0], scan if scan is not None else np.zeros((0, 3)),
-                      self.calib_source, "0")
-            self.fit_checked = True
+        check_first_frame(self, image, scan)
         # the solver's finest level (the camera's grey image and its gradients) needs no scan: it
         # starts at once, beside the scan's cull
         finest = self._beside(functools.partial(finest_level, image), threads) if self.model.point_solver else None

@@ -174,6 +174,14 @@ class RunPlan:
         return len(self.done) == self.n
 
 
+def check_recording_fit(seq: Recording, i: int, label: str | None = None) -> None:
+    """The recording's calibration against frame i's image and scan (`calib.check_fit`), before
+    any work: the trackers then skip their own first-frame check (`fit_checked`)."""
+    image = seq.image(i)
+    check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(i), getattr(seq, "calib_path", None) or seq.root,
+              label or seq.frame_names[i])
+
+
 def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),
                 model: StageModel | None = None, odometry=None) -> RunPlan:
     """Every check that can fail before the first frame (range, format, output file, model), so
@@ -217,9 +225,7 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
         warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "
                       f"{rc.viz_every}), and this one has {n} frames: no picture (a smaller --viz-every draws more)")
-    image = seq.image(rc.start)
-    check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(rc.start), getattr(seq, "calib_path", None) or seq.root,
-              seq.frame_names[rc.start])
+    check_recording_fit(seq, rc.start)
     done = _existing_poses(out, rc.fmt, n) if rc.resume else np.zeros((0, 4, 4))
     opens = odometry is None and model is None  # this run opens the network's sessions, split as it pipelines
     backend = model.backend if model is not None else sc.resolved().backend

@@ -22,12 +22,11 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .calib import check_fit
 from .errors import D3LVOInputError
 from .geometry import se3_inv
 from .odometry import Odometry
 from .onnx_model import SessionConfig, StageModel
-from .pipeline import format_kitti
+from .pipeline import check_recording_fit, format_kitti
 from .sequence import KittiSequence
 
 ENGINES = ("sequential", "local", "ray")
@@ -194,8 +193,7 @@ def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, en
     chunks, expected = [], {}
     for name, d in seq_dirs.items():
         seq = KittiSequence.open(d)
-        first = seq.image(0)  # the calibration against the first frame, once per sequence (`calib.check_fit`)
-        check_fit(seq.calib, first.shape[1], first.shape[0], seq.scan(0), seq.calib_path, f"{name}/{seq.frame_names[0]}")
+        check_recording_fit(seq, 0, f"{name}/{seq.frame_names[0]}")  # once per sequence, not per chunk
         ranges = plan_chunks(len(seq), chunk, overlap)
         expected[name] = len(ranges)
         chunks += [Chunk(name, str(d), s, e) for s, e in ranges]

@@ -139,6 +139,11 @@ def _check_contiguous(root: Path, names: list[str]) -> None:
     ids = np.array([int(n) for n in names])
     if ids[0] >= FRAME_NUMBERS_BELOW:  # stamps as names (a recorder's ns or ms): no count to check
         return
+    check_no_gap(root, names, ids)
+
+
+def check_no_gap(root: Path, names: list[str], ids: np.ndarray) -> None:
+    """One error at the first step of the frame count `ids` (of `names`) that is not 1."""
     gaps = np.nonzero(np.diff(ids) != 1)[0]
     if len(gaps):
         g = gaps[0]

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..calib import parse_calib
 from ..errors import D3LVOInputError
-from ..sequence import FRAME_NUMBERS_BELOW, _read_times, read_image, read_scan
+from ..sequence import FRAME_NUMBERS_BELOW, _read_times, check_no_gap, read_image, read_scan
 from .base import SensorSequence, as_scan
 
 IMAGE_DIRS = ("image_2", "images", "image", "camera", "rgb", "img")
@@ -129,10 +129,7 @@ def _check_numbered(root: Path, names: list[str]) -> None:
     steps = np.diff(ids)
     if ids[0] >= FRAME_NUMBERS_BELOW or np.mean(steps == 1) < 0.5:
         return
-    gaps = np.nonzero(steps != 1)[0]
-    if len(gaps):
-        g = gaps[0]
-        raise D3LVOInputError(root, f"frame numbers jump from {names[g]} to {names[g + 1]} (missing frame?)")
+    check_no_gap(root, names, ids)
 
 
 def is_folder(path: Path) -> bool:
