@@ -749,41 +749,55 @@ def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, 
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
 
 
-def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(points_model, small_synth, tmp_path):
-    """Exported with `pt_select_scan_pass` and without the restart (so the scan is read for the
-    choice between the weighted and the classical pose alone; pt_select 0.999: the photometric test
-    never passes), the flow+pose graphs take frame t's scan and the classical solve does not; the
-    torch-free runtime, which solves the classical mode beside the network, gives torch's
-    trajectory under the same settings, which differs from the classical pose kept always. The
-    fixture's last confidence layer is redrawn at std 3, as in the rotation gate's test: an
-    untrained confidence is the same on every point, and the two solves then agree."""
-    from d3lvo_deploy.manifest import load_manifest
-    from d3lvo_deploy.pipeline import RunConfig, run_sequence
-    from d3lvo_deploy.poses import read_poses
+@pytest.fixture(scope="module")
+def scan_judge_model(points_model, tmp_path_factory):
+    """(checkpoint, ONNX folder): `points_model` with `pt_select_scan_pass` 1 and pt_select 0.999
+    (the photometric test never passes), without the restart, so that frame t's scan is read for
+    the choice between the weighted and the classical pose alone; its last confidence layer
+    redrawn at std 3, as in the rotation gate's test: an untrained confidence is the same on every
+    point, and the two solves then agree. Its classical solve is a stage of its own."""
+    from conftest import built_once
     from export.onnx_export import ExportConfig, export_checkpoint
     from models.checkpoint import build_model, load_checkpoint, save_checkpoint
     from models.d3lvo import D3LVO
+
+    def build(d):
+        solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0)
+        fixture = build_model(load_checkpoint(points_model[0]))
+        model = D3LVO(replace(fixture.cfg, **solver)).eval()
+        model.load_state_dict(fixture.state_dict())
+        torch.manual_seed(1)
+        with torch.no_grad():
+            model.point_pose.moving.net[-1].weight.normal_(std=3.0)
+            model.point_pose.moving.net[-1].bias.zero_()
+        save_checkpoint(d / "ck.pt", model, model.cfg, step=0)
+        export_checkpoint(d / "ck.pt", ExportConfig(out=d / "o"))
+
+    d = built_once(tmp_path_factory, "scan_judge_model", build)
+    return d / "ck.pt", d / "o"
+
+
+def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(scan_judge_model, small_synth, tmp_path):
+    """With `pt_select_scan_pass` (`scan_judge_model`), the flow+pose graphs take frame t's scan
+    and the classical solve does not; the torch-free runtime, which solves the classical mode
+    beside the network, gives torch's trajectory under the same settings, which differs from the
+    classical pose kept always."""
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from models.checkpoint import build_model, load_checkpoint
     from models.predict import predict_sequence
 
-    solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0)
-    fixture = build_model(load_checkpoint(points_model[0]))
-    model = D3LVO(replace(fixture.cfg, **solver)).eval()
-    model.load_state_dict(fixture.state_dict())
-    torch.manual_seed(1)
-    with torch.no_grad():
-        model.point_pose.moving.net[-1].weight.normal_(std=3.0)
-        model.point_pose.moving.net[-1].bias.zero_()
-    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
-    export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=tmp_path / "o"))
-    stages = load_manifest(tmp_path / "o")["stages"]
+    ck_path, onnx_dir = scan_judge_model
+    stages = load_manifest(onnx_dir)["stages"]
     takes = {name: "scan_depth2" in [i["name"] for i in stage["inputs"]] for name, stage in stages.items()}
     assert takes == {"completion": False, "encoder": False, "flowpose": True, "classical": False,
                      "flowpose_weighted": True}
-    ck = load_checkpoint(tmp_path / "ck.pt")
+    ck = load_checkpoint(ck_path)
     torch_traj = predict_sequence(build_model(ck), small_synth)
     classical = predict_sequence(build_model({**ck, "config": replace(ck["config"], pt_select_scan_pass=0.0)}),
                                  small_synth)
-    run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
+    run_sequence(KittiSequence.open(small_synth), onnx_dir, RunConfig(out=tmp_path / "p.txt"))
     est = read_poses(tmp_path / "p.txt").poses
     np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
     assert np.abs(torch_traj[:, :3, 3] - classical[:, :3, 3]).max() > 1e-4
@@ -987,17 +1001,17 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
     for graph in ("flowpose.onnx", "flowpose.onnxruntime.onnx"):  # GridSample's and onnxruntime's
         sess = ort.InferenceSession(str(tmp_path / "gate" / graph), providers=["CPUExecutionProvider"])
+        # the classical mode solved apart (`classical`), its pose then given to the flow+pose graph
+        # that takes it (`flowpose_weighted`): every output as the batched graph's, to the bit
+        split = graph.replace("flowpose", "{}")
+        alone = ort.InferenceSession(str(tmp_path / "gate" / split.format("classical")),
+                                     providers=["CPUExecutionProvider"])
+        given = ort.InferenceSession(str(tmp_path / "gate" / split.format("flowpose_weighted")),
+                                     providers=["CPUExecutionProvider"])
         for feeds, rows in ((batch, slice(0, 2)), (one, slice(0, 1)), (other, slice(1, 2))):
             kept, start = sess.run(["matrix", "start_next"], feeds)
             np.testing.assert_allclose(kept, want[rows], atol=1e-5)
             np.testing.assert_allclose(start, weighted[rows], atol=1e-5)
-            # the classical mode solved apart (`classical`), its pose then given to the flow+pose
-            # graph that takes it (`flowpose_weighted`): every output as the batched graph's, to the bit
-            split = graph.replace("flowpose", "{}")
-            alone = ort.InferenceSession(str(tmp_path / "gate" / split.format("classical")),
-                                         providers=["CPUExecutionProvider"])
-            given = ort.InferenceSession(str(tmp_path / "gate" / split.format("flowpose_weighted")),
-                                         providers=["CPUExecutionProvider"])
             pose = alone.run(None, {i.name: feeds[i.name] for i in alone.get_inputs()})[0]
             np.testing.assert_allclose(pose, classical[rows], atol=1e-5)
             both = given.run(None, {**feeds, "classical_pose": pose})
@@ -1005,26 +1019,27 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
                 np.testing.assert_array_equal(a, b, err_msg=f"{split.format('flowpose_weighted')}: {name}")
 
 
-def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(points_model, small_synth, tmp_path):
-    """A model that keeps its classical pose unless the weighted one fits better (`pt_select`) is
-    exported with that solve as a stage of its own. On two threads the runtime opens it and the
-    flow+pose graph that takes its pose, not the batched graph, solves it on its helper thread
-    while completion and encoder run (its time in `last_timing.beside`, outside the frame's total),
-    and writes the poses the batched graph gives (the switch off), to the bit on onnxruntime; on
-    one thread it runs the batched graph."""
+def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(scan_judge_model, small_synth,
+                                                                               tmp_path):
+    """A model that chooses between its weighted and its classical pose (`pt_select`,
+    `scan_judge_model`) is exported with the classical solve as a stage of its own. On two threads
+    the runtime opens it and the flow+pose graph that takes its pose, not the batched graph, solves
+    it on its helper thread while completion and encoder run (its time in `last_timing.beside`,
+    outside the frame's total), and writes the poses the batched graph gives (the switch off), to
+    the bit on onnxruntime; on one thread it runs the batched graph."""
     from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.odometry import Odometry
-    from export.onnx_export import ExportConfig, export_checkpoint
 
-    m = export_checkpoint(points_model[0], ExportConfig(out=tmp_path / "m", solver={"pt_select": 0.01}))
-    assert {"classical", "flowpose_weighted"} <= set(m["stages"])
+    model_dir = scan_judge_model[1]
+    assert {"classical", "flowpose_weighted"} <= set(load_manifest(model_dir)["stages"])
     import threading
 
     seq = KittiSequence.open(small_synth)
     poses = {}
     for name, sc in {"beside": SessionConfig(threads=2), "batched": SessionConfig(threads=2, classical_beside=False),
                      "one thread": SessionConfig(threads=1)}.items():
-        odo = Odometry(tmp_path / "m", seq.calib, sc)
+        odo = Odometry(model_dir, seq.calib, sc)
         started, overlapped = threading.Event(), []
         if name == "beside":  # completion waits (up to 10 s) for the pair's classical solve to start
             solve, complete = odo.model.solve_classical, odo.model.complete
@@ -1051,7 +1066,7 @@ def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(p
     from d3lvo_deploy.odometry import BESIDE_ROW, STAGES
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
 
-    lat = run_sequence(seq, tmp_path / "m", RunConfig(out=tmp_path / "p.txt", end=4), SessionConfig(threads=2)).latencies_ms
+    lat = run_sequence(seq, model_dir, RunConfig(out=tmp_path / "p.txt", end=4), SessionConfig(threads=2)).latencies_ms
     assert len(lat[BESIDE_ROW]) == 3  # the pairs
     frames = np.array([lat[k] for k in (*STAGES, "read")]).sum(0)
     np.testing.assert_allclose(lat["total"], frames)

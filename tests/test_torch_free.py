@@ -40,12 +40,13 @@ def test_every_runtime_module_imports_without_torch():
 
 
 def test_runtime_cli_runs_without_the_training_extras(small_synth, tmp_path):
-    """A vehicle install (no [train], [synth], [plot]): run (network and direct tracker) and eval
-    work; commands that need an extra say which one in one line, exit 1, no traceback."""
+    """A vehicle install (no [train], [synth], [plot], [openvino]): run (network and direct
+    tracker), eval and bench work, on onnxruntime; commands that need an extra say which one in one
+    line, exit 1, no traceback."""
     script = textwrap.dedent(
         """
         import sys
-        BLOCKED = ("torch", "embreex", "matplotlib", "onnx")
+        BLOCKED = ("torch", "embreex", "matplotlib", "onnx", "openvino")
 
         class Block:
             def find_spec(self, name, path=None, target=None):
@@ -72,7 +73,7 @@ def test_runtime_cli_runs_without_the_training_extras(small_synth, tmp_path):
     r = d3lvo("eval", "--gt", str(small_synth / "poses.txt"), "--est", est)
     assert r.returncode == 0 and "ATE" in r.stdout, r.stderr
     r = d3lvo("bench", "--no-torch", "--seq-dir", seq, "--runs", "2")
-    assert r.returncode == 0 and "frames/s" in r.stdout, r.stderr
+    assert r.returncode == 0 and "frames/s" in r.stdout and "openvino" not in r.stdout.lower(), r.stderr
     for args, extra in ((["train", "--data", seq, "--out", str(tmp_path / "c.pt")], "train"),
                         (["synth", "--out", str(tmp_path / "s"), "--frames", "2"], "synth"),
                         (["eval", "--gt", str(small_synth / "poses.txt"), "--est", est, "--plot", str(tmp_path / "x.png")], "plot"),
