@@ -75,3 +75,49 @@ def test_real_frames_end_near_lidar_odometry():
     end_off = float(np.linalg.norm(est[-1, :3, 3] - ref[-1, :3, 3]))
     print(f"KISS-ICP path {length(ref):.2f} m; network end {end_off:.2f} m off, path {length(est):.2f} m")
     assert length(ref) > 3.0 and end_off < 0.4 and abs(length(est) / length(ref) - 1) < 0.1
+
+
+def test_split_auroc_by_hand():
+    """Four static cells at score 0; five moving ones, scored 1, 1, 0, 0, -1: overall 12 of 20
+    (moving, static) pairs ranked right (ties count one half), 0.6; each group of the moving cells
+    against the four static ones alone."""
+    from models.pair_eval import split_auroc
+
+    score = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, -1.0])
+    moving = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1], bool)
+    visible = np.array([0.0, 0.0, 0.0, 0.0, 2.0, 5.0, 0.1, 0.4, 1.0])
+    inside = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 3.0, 1.0, 6.0, 2.0])
+    r = split_auroc(score, moving, visible, inside)
+    assert r["moving_auroc"] == pytest.approx(0.6) and r["moving_share"] == pytest.approx(5 / 9)
+    want = {"visible_from_2": (1.0, 0.4), "visible_below_0.5": (0.5, 0.4), "visible_0.5_to_2": (0.0, 0.2),
+            "edge_within_2": (0.5, 0.6), "inside_2_to_5": (1.0, 0.2), "inside_beyond_5": (0.5, 0.2)}
+    for name, (a, share) in want.items():
+        assert r[name]["auroc"] == pytest.approx(a) and r[name]["share"] == pytest.approx(share), name
+
+
+def test_split_moving_cells_of_a_traffic_drive(busy_street, tmp_path):
+    """On the busy street, the bundled checkpoint's cells: a static cell's true flow is the rigid
+    flow of the true ego motion (the renderer's flow against `rigid_flow` of its depth and poses, two
+    computations apart), so its visible motion is near 0, and the movers' is larger; the overall
+    AUROC is `pair_metrics`' for the same pairs. A folder without motion masks is one clear error."""
+    torch = pytest.importorskip("torch")
+    from d3lvo_deploy.errors import D3LVOInputError
+    from models.checkpoint import build_model, load_checkpoint
+    from models.pair_eval import moving_cells, split_auroc
+    from models.train import pair_metrics
+
+    torch.set_num_threads(1)
+    model = build_model(load_checkpoint(bundled_model_dir() / "default.pt"))
+    cells = moving_cells(model, str(busy_street), pairs=3)
+    static, moving = cells["visible"][~cells["moving"]], cells["visible"][cells["moving"]]
+    print(f"visible motion, cells: static median {np.median(static):.4f}, p90 {np.percentile(static, 90):.4f}; "
+          f"moving median {np.median(moving):.4f}")
+    assert np.median(static) < 0.02 and np.percentile(static, 90) < 0.25
+    assert np.median(moving) > 10 * max(np.median(static), 0.01)
+    assert (cells["inside"][cells["moving"]] >= 1).all() and (cells["inside"][~cells["moving"]] == 0).all()
+    level = model.cfg.flow_levels[-1]
+    assert split_auroc(**cells)["moving_auroc"] == pytest.approx(
+        pair_metrics(model, [str(busy_street)], pairs=3)[f"moving_auroc_l{level}"], abs=1e-9)
+    (tmp_path / "image_2").mkdir()
+    with pytest.raises(D3LVOInputError, match="needs motion_2/, flow_2/, depth_2/"):
+        moving_cells(model, str(tmp_path))
