@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.metrics import auroc
@@ -39,7 +40,9 @@ def moving_cells(model: D3LVO, seq: str, pairs: int = 48) -> dict[str, np.ndarra
     mask's majority, as `pair_metrics`), `visible` (how far the cell moves against the rigid flow
     of the true ego motion on the renderer's depth: the true flow minus that, mean length over the
     cell's pixels where both are defined, in cells; a static cell's is 0) and `inside` (cells to the
-    nearest static cell; 1 at a vehicle's edge)."""
+    nearest static cell; 1 at a vehicle's edge); and per pixel of the network view, `pixel_score`
+    (the confidence read at the pixel as the solver's points read it, `PointPose.point_confidence`)
+    and `pixel_moving` (the motion mask)."""
     if not model.cfg.point_solver:
         raise D3LVOInputError(None, "--split-moving reads the point pose head's confidence; this model has "
                                     f"pose_head {model.cfg.pose_head!r}")
@@ -50,7 +53,8 @@ def moving_cells(model: D3LVO, seq: str, pairs: int = 48) -> dict[str, np.ndarra
     model.eval()
     data = PairDataset([seq], model.cfg, augment=None)
     idx = np.linspace(0, len(data) - 1, min(pairs, len(data))).round().astype(int)
-    cells: dict[str, list] = {"score": [], "moving": [], "visible": [], "inside": []}
+    cells: dict[str, list] = {"score": [], "moving": [], "visible": [], "inside": [], "pixel_score": [],
+                              "pixel_moving": []}
     for i in idx:
         b = {k: v[None] for k, v in data[int(i)].items()}
         out = model(b["rgb1"], b["rgb2"], b["depth1"], b["depth2"], b["K"], b["init"], data.solver_inputs(int(i)))
@@ -67,15 +71,25 @@ def moving_cells(model: D3LVO, seq: str, pairs: int = 48) -> dict[str, np.ndarra
         cells["moving"].append(moving)
         cells["visible"].append(pooled[0] / np.maximum(pooled[1], 1e-6))
         cells["inside"].append(cv2.distanceTransform(moving.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+        h, w = b["moving"].shape[-2:]
+        v, u = torch.meshgrid(torch.arange(h, dtype=c.dtype), torch.arange(w, dtype=c.dtype), indexing="ij")
+        grid = torch.stack([2.0 * u / s / (c.shape[-1] - 1) - 1.0, 2.0 * v / s / (c.shape[-2] - 1) - 1.0], -1)
+        pixel = F.grid_sample(c, grid[None], mode="bilinear", padding_mode="border", align_corners=True)
+        cells["pixel_score"].append(-pixel[0, 0].numpy())
+        cells["pixel_moving"].append(b["moving"][0, 0].numpy() > 0.5)
     return {k: np.concatenate([a.ravel() for a in v]) for k, v in cells.items()}
 
 
-def split_auroc(score: np.ndarray, moving: np.ndarray, visible: np.ndarray, inside: np.ndarray) -> dict:
+def split_auroc(score: np.ndarray, moving: np.ndarray, visible: np.ndarray, inside: np.ndarray,
+                pixel_score: np.ndarray | None = None, pixel_moving: np.ndarray | None = None) -> dict:
     """The AUROC of `score` for moving against static cells, and the same for each group of the
     moving cells (`VISIBLE`, `INSIDE`) against every static cell, with the group's share of the
-    moving cells: which cells an AUROC below target misses."""
+    moving cells: which cells an AUROC below target misses. With pixel scores, also the AUROC for
+    moving against static pixels."""
     moving = moving.astype(bool)
     res = {"moving_auroc": auroc(score, moving), "moving_share": float(moving.mean())}
+    if pixel_score is not None:
+        res["pixel_auroc"] = auroc(pixel_score, pixel_moving)
     groups = [(name, (visible >= lo) & (visible < hi)) for name, lo, hi in VISIBLE]
     groups += [(name, (inside > lo) & (inside <= hi)) for name, lo, hi in INSIDE]
     for name, where in groups:

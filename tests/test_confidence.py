@@ -99,7 +99,8 @@ def test_split_moving_cells_of_a_traffic_drive(busy_street, tmp_path):
     """On the busy street, the bundled checkpoint's cells: a static cell's true flow is the rigid
     flow of the true ego motion (the renderer's flow against `rigid_flow` of its depth and poses, two
     computations apart), so its visible motion is near 0, and the movers' is larger; the overall
-    AUROC is `pair_metrics`' for the same pairs. A folder without motion masks is one clear error."""
+    AUROC is `pair_metrics`' for the same pairs, and a pixel on a cell's centre takes that cell's
+    score. A folder without motion masks is one clear error."""
     torch = pytest.importorskip("torch")
     from d3lvo_deploy.errors import D3LVOInputError
     from models.checkpoint import build_model, load_checkpoint
@@ -116,8 +117,15 @@ def test_split_moving_cells_of_a_traffic_drive(busy_street, tmp_path):
     assert np.median(moving) > 10 * max(np.median(static), 0.01)
     assert (cells["inside"][cells["moving"]] >= 1).all() and (cells["inside"][~cells["moving"]] == 0).all()
     level = model.cfg.flow_levels[-1]
-    assert split_auroc(**cells)["moving_auroc"] == pytest.approx(
+    split = split_auroc(**cells)
+    assert split["moving_auroc"] == pytest.approx(
         pair_metrics(model, [str(busy_street)], pairs=3)[f"moving_auroc_l{level}"], abs=1e-9)
+    # per pixel, the confidence read where the solver's points read it: cell j sits on view pixel 4 j
+    # (`point_confidence`), so there the pixel's score is the cell's
+    h, w = model.cfg.height, model.cfg.width
+    on_cells = cells["pixel_score"].reshape(-1, h, w)[:, ::4, ::4]
+    np.testing.assert_allclose(on_cells, cells["score"].reshape(on_cells.shape), atol=1e-5)  # float32 grid
+    print(f"AUROC of low confidence for moving cells {split['moving_auroc']:.4f}, pixels {split['pixel_auroc']:.4f}")
     (tmp_path / "image_2").mkdir()
     with pytest.raises(D3LVOInputError, match="needs motion_2/, flow_2/, depth_2/"):
         moving_cells(model, str(tmp_path))
