@@ -26,6 +26,8 @@ eval`'s figures:
   one more solve per pair);
 - `kept-start:T`: `pt_select:T`, but each pair starts from the pose kept at the previous pair
   rather than from its weighted pose (the graph's `start_next`, what the bundled model does);
+- `depth-guided:S`: each point reads the confidence of the cells around it that lie at its own
+  depth (within a relative spread S), not a blend across a vehicle's edge;
 - `posterior:C`: per solver step, the confidence as a prior that the point is static, updated by
   its residual (a Huber-shaped likelihood against a uniform one of density C on the [0, 1] grey
   scale).
@@ -57,7 +59,7 @@ from models.predict import predict_sequence
 Remap = Callable[[torch.Tensor], torch.Tensor]
 REMAPS = {"ones": 0, "lin": 2, "strong": 1, "mild": 1}  # name: how many numbers follow it
 OTHERS = {"conf": 0, "open": 1, "evidence-at-classical": 0, "evidence-at-network": 0, "posterior": 1, "select": 2,
-          "pt_select": 1, "kept-start": 1}
+          "pt_select": 1, "kept-start": 1, "depth-guided": 1}
 CHOICES: list[float] = []  # `select`, `pt_select`: per pair, 1 where the classical pose was kept
 
 
@@ -66,7 +68,7 @@ def parse(variant: str) -> tuple[str, list[float]]:
     name, *args = variant.split(":")
     count = {**REMAPS, **OTHERS}.get(name)
     if count is None:
-        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C, select:C:T, pt_select:T, kept-start:T")
+        sys.exit(f"unknown variant {variant!r}: conf, ones, lin:A:B, strong:T, mild:T, evidence-at-classical, evidence-at-network, open:K, posterior:C, select:C:T, pt_select:T, kept-start:T, depth-guided:S")
     try:
         numbers = [float(x) for x in args]
     except ValueError:
@@ -81,6 +83,8 @@ def parse(variant: str) -> tuple[str, list[float]]:
         sys.exit(f"variant {variant!r}: the truncation C (robust sigmas) must be above 0")
     if name in ("pt_select", "kept-start") and not 0 < numbers[0] < 1:
         sys.exit(f"variant {variant!r}: the threshold T must be in (0, 1)")
+    if name == "depth-guided" and not numbers[0] > 0:
+        sys.exit(f"variant {variant!r}: the relative depth spread S must be above 0")
     if name == "posterior" and not numbers[0] > 0:
         sys.exit(f"variant {variant!r}: the outlier density C must be above 0")
     return name, numbers
@@ -162,6 +166,38 @@ def select_pose(c: float, gate: float) -> None:
     pose_points.PointPose.forward = selecting
 
 
+def depth_guided(spread: float) -> None:
+    """Each point reads the confidence of the four cells around it (`point_confidence`'s bilinear
+    corners) weighted also by how near each cell's depth (the network's completed depth at the
+    cell) is to the point's own, exp(-(|z_cell - z| / (spread z))^2): a point beside a vehicle's
+    edge takes the confidence of the cells at its own depth, not a blend of vehicle and background."""
+    forward, bilinear = pose_points.PointPose.forward, pose_points.PointPose.point_confidence
+
+    def keeping_depth(self, hidden, flow, feat1, feat2, invdepth1, *rest):
+        self._invdepth1 = invdepth1
+        return forward(self, hidden, flow, feat1, feat2, invdepth1, *rest)
+
+    def guided(self, c, points, K):
+        uv, zi, _ = point_solver.project(points, K)
+        s = float(2 ** (self.level + 1))
+        h, w = c.shape[-2:]
+        x, y = (uv[..., 0] / s).clamp(0, w - 1), (uv[..., 1] / s).clamp(0, h - 1)
+        x0, y0 = x.floor().clamp(max=w - 2), y.floor().clamp(max=h - 2)
+        fx, fy = x - x0, y - y0
+        z = 1.0 / zi
+        total, norm = torch.zeros_like(x), torch.zeros_like(x)
+        for dx, dy, wb in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+            idx = ((y0 + dy) * w + x0 + dx).long()
+            cell_c = c.flatten(1).gather(1, idx)
+            cell_z = self.cfg.min_depth / self._invdepth1.flatten(1).gather(1, idx).clamp(min=1e-6)
+            wt = wb * torch.exp(-(((cell_z - z).abs() / (spread * z)) ** 2))
+            total, norm = total + wt * cell_c, norm + wt
+        return torch.where(norm > 1e-6, total / norm.clamp(min=1e-6), bilinear(self, c, points, K))
+
+    pose_points.PointPose.forward = keeping_depth
+    pose_points.PointPose.point_confidence = guided
+
+
 def apply_variant(name: str, numbers: list[float]) -> None:
     """Patch the model code for one variant (this process only)."""
     remap = weight_map(name, numbers)
@@ -179,6 +215,8 @@ def apply_variant(name: str, numbers: list[float]) -> None:
         pose_points.PointPose.point_confidence = opened
     elif name == "select":
         select_pose(*numbers)
+    elif name == "depth-guided":
+        depth_guided(numbers[0])
     elif name == "kept-start":
         forward = pose_points.PointPose.forward
 
