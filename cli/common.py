@@ -7,15 +7,22 @@ from typing import Callable, TypeVar
 
 import typer
 from rich.console import Console
-from rich.markup import escape
+from rich.text import Text
 
 from d3lvo_deploy.errors import D3LVOInputError
 
 def _console(stderr: bool) -> Console:
     """Piped or redirected, rich would cut tables to 80 columns (`100.5…` for an ATE): wide enough
-    there that every cell stays whole."""
-    c = Console(stderr=stderr)
-    return c if c.is_terminal else Console(stderr=stderr, width=200)
+    there that every cell stays whole. No markup: paths and user input go into most lines, and rich
+    would read `[v2]` in a folder name as a style (and `[/]` as an error after the work is done);
+    a coloured word is a `Text` (`lead`)."""
+    c = Console(stderr=stderr, markup=False)
+    return c if c.is_terminal else Console(stderr=stderr, width=200, markup=False)
+
+
+def lead(word: str, style: str, text: str = "") -> Text:
+    """`word` in `style`, then `text` as it is."""
+    return Text.assemble((word, style), text)
 
 
 console = _console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
@@ -32,10 +39,10 @@ def friendly_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except D3LVOInputError as e:
-            console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
+            console.print(lead("error:", "bold red", f" {e}"), highlight=False, soft_wrap=True)
             raise typer.Exit(1) from None
         except KeyboardInterrupt:
-            console.print("[yellow]interrupted[/]")
+            console.print(lead("interrupted", "yellow"))
             raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from .common import console, friendly_errors, out
+from .common import console, friendly_errors, lead, out
 from .progress import frame_progress
 
 DEMO_SEED = 909  # not among the training seeds (10-18) nor validation seeds (109-110)
@@ -52,10 +52,11 @@ def demo_command(
     cfg = SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1])
     check_config(cfg)
     if _rendered(seq_dir, cfg):
-        console.print(f"[bold]1/3[/] reusing the held-out synthetic drive rendered earlier in {seq_dir}", highlight=False)
+        console.print(lead("1/3", "bold", f" reusing the held-out synthetic drive rendered earlier in {seq_dir}"),
+                      highlight=False)
     else:
-        console.print(f"[bold]1/3[/] rendering a held-out synthetic drive ({frames} frames, seed {DEMO_SEED}) "
-                      f"into {seq_dir}", highlight=False)
+        console.print(lead("1/3", "bold", f" rendering a held-out synthetic drive ({frames} frames, seed {DEMO_SEED}) "
+                                          f"into {seq_dir}"), highlight=False)
         with frame_progress() as bar:
             task = bar.add_task("synth", total=frames, rate="")
             generate(seq_dir, cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
@@ -64,7 +65,7 @@ def demo_command(
 
     sc = SessionConfig(backend="auto").resolved()  # OpenVINO where installed: the faster engine here
     engine = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}[sc.backend]
-    console.print(f"[bold]2/3[/] D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) on it",
+    console.print(lead("2/3", "bold", f" D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) on it"),
                   highlight=False)
     seq = KittiSequence.open(seq_dir)
     poses_path = out_dir / "synthetic_heldout_poses.txt"
@@ -92,9 +93,9 @@ def demo_command(
 
     real = find_real_frames()
     if real is None:
-        console.print("[bold]3/3[/] ../shared/data (real KITTI frames) not found: skipped", highlight=False)
+        console.print(lead("3/3", "bold", " ../shared/data (real KITTI frames) not found: skipped"), highlight=False)
     else:
-        console.print(f"[bold]3/3[/] the 20 real KITTI frames in {real}", highlight=False)
+        console.print(lead("3/3", "bold", f" the 20 real KITTI frames in {real}"), highlight=False)
         rseq = KittiSequence.open(real)
         rpath = out_dir / "real_r0926_poses.txt"
         run_sequence(rseq, model_dir, RunConfig(out=rpath, overwrite=True), sc)

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import typer
-from rich.markup import escape
+from rich.text import Text
 from rich.table import Table
 
 from d3lvo_deploy.evaluation import ALIGN_MODES, EvalReport, evaluate_files, pair_result_files
@@ -14,7 +14,7 @@ from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.extras import require
 from d3lvo_deploy.plot import plot_path, plot_trajectories
 
-from .common import console, friendly_errors, out
+from .common import console, friendly_errors, lead, out
 
 
 def _fmt(v: float | None, nd: int = 2) -> str:
@@ -31,13 +31,13 @@ def report_table(report: EvalReport | dict[str, EvalReport]) -> Table:
     for col in ("seq", "frames", "len m", "t_rel %", "r_rel °/100m", "ATE m", "RPE m", "RPE °", "segs"):
         table.add_column(col, justify="right")
     for label, rep in reports.items():
-        lead = [escape(label)] if len(reports) > 1 else []
+        lead = [label] if len(reports) > 1 else []
         for s in rep.sequences:
             table.add_row(*lead, s.name, str(s.frames), f"{s.path_length_m:.1f}", _fmt(s.t_rel), _fmt(s.r_rel),
                           f"{s.ate:.3f}", _fmt(s.rpe_t, 4), _fmt(s.rpe_r, 4), str(s.segments))
         if len(rep.sequences) > 1:
             o = rep.overall
-            table.add_row(*lead, "[bold]all[/]", str(o["frames"]), "", _fmt(o["t_rel"]), _fmt(o["r_rel"]),
+            table.add_row(*lead, Text("all", style="bold"), str(o["frames"]), "", _fmt(o["t_rel"]), _fmt(o["r_rel"]),
                           f"{o['ate']:.3f}", _fmt(o["rpe_t"], 4), _fmt(o["rpe_r"], 4), str(o["segments"]))
     return table
 
@@ -80,15 +80,15 @@ def eval_command(
     for label, e in zip(_labels(est), est):
         pairs, unpaired = pair_result_files(gt, e)
         if unpaired:
-            console.print(f"[yellow]note[/] {escape(str(e))}: {', '.join(unpaired)} not scored: no file of that name "
-                          f"in {escape(str(gt))}", highlight=False)
+            console.print(lead("note", "yellow", f" {e}: {', '.join(unpaired)} not scored: no file of that name "
+                                                 f"in {gt}"), highlight=False)
         reports[label] = evaluate_files(pairs, align=align)
     many = len(reports) > 1
     for label, report in reports.items():
         for s in report.sequences:
             for note in s.notes:
                 who = f"{label} {s.name}" if many and label != s.name else s.name
-                console.print(f"[yellow]note[/] {escape(who)}: {note}", highlight=False)
+                console.print(lead("note", "yellow", f" {who}: {note}"), highlight=False)
     if plot is not None:
         first = next(iter(reports.values()))
         for s in first.sequences:

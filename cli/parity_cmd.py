@@ -7,6 +7,7 @@ from pathlib import Path
 
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from .common import friendly_errors, out
 
@@ -48,12 +49,12 @@ def parity_command(
             t.add_column(c)
         for stage, outs in rep.stages.items():
             for name, d in outs.items():
-                t.add_row(stage, name, f"{d.max_abs:.2e}", f"{d.max_rel:.2e}", "yes" if d.ok else "[red]NO[/]")
+                t.add_row(stage, name, f"{d.max_abs:.2e}", f"{d.max_rel:.2e}", "yes" if d.ok else Text("NO", style="red"))
         out.print(t)
         out.print(f"chained relative pose: {rep.chained_t_m:.2e} m (<= {POSE_T_TOL:g}), "
                   f"{rep.chained_r_deg:.2e} deg (<= {POSE_R_TOL:g})", highlight=False)
         out.print(f"against D3LVO.forward on each pair: {rep.reference_t_m:.2e} m, {rep.reference_r_deg:.2e} deg "
                   f"(largest motion compared: {rep.motion_t_m:.3f} m, {rep.motion_r_deg:.3f} deg)", highlight=False)
-        out.print("[bold green]PASS[/]" if rep.passed else "[bold red]FAIL[/]")
+        out.print(Text("PASS", style="bold green") if rep.passed else Text("FAIL", style="bold red"))
     if not rep.passed:
         raise typer.Exit(1)

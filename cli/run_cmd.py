@@ -12,12 +12,11 @@ from pathlib import Path
 import numpy as np
 
 import typer
-from rich.markup import escape
 from rich.table import Table
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors, given_on_command_line, out
+from .common import console, friendly_errors, given_on_command_line, lead, out
 from .progress import frame_progress
 
 
@@ -197,8 +196,8 @@ def _check_model(config: Path, run: dict, opts: dict) -> None:
     onnx = opts["onnx"] if "onnx" not in run else Path(run["onnx"])
     manifest = resolve_model_dir(onnx) / "manifest.json"
     if recorded and manifest.is_file() and sha256_file(manifest) != recorded:
-        console.print(f"[yellow]warning[/] {manifest} differs from the model {path} recorded "
-                      f"(sha256 {recorded[:12]}...): the poses will differ", highlight=False)
+        console.print(lead("warning", "yellow", f" {manifest} differs from the model {path} recorded "
+                                                f"(sha256 {recorded[:12]}...): the poses will differ"), highlight=False)
 
 
 def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic, info_topic, max_dt):
@@ -227,7 +226,7 @@ def _check_ground_truth(seq, given: bool) -> None:
     except D3LVOInputError as e:
         if given or not hasattr(seq, "gt_path"):
             raise
-        console.print(f"[yellow]warning[/] {escape(str(e))}; the run goes on without scoring", highlight=False)
+        console.print(lead("warning", "yellow", f" {e}; the run goes on without scoring"), highlight=False)
         seq.gt_path = None
 
 
@@ -342,7 +341,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     except D3LVOInputError as e:
         if folder is not None:  # the results folder is the run's own: it must hold its config
             raise
-        console.print(f"[yellow]warning[/] {escape(str(e))}: --resume cannot check what it continues", highlight=False)
+        console.print(lead("warning", "yellow", f" {e}: --resume cannot check what it continues"), highlight=False)
     if folder is not None and fresh:
         from d3lvo_deploy.results import link_latest
 
@@ -379,14 +378,17 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         except KeyboardInterrupt:
             bar.stop()
             again = f"--out-dir {folder.path}" if folder is not None else ""
-            console.print(f"[yellow]interrupted[/]: the poses so far are in {out_path}; the same command with "
-                          f"--resume {again} continues from there", highlight=False)
+            console.print(lead("interrupted", "yellow", f": the poses so far are in {out_path}; the same command with "
+                                                        f"--resume {again} continues from there"), highlight=False)
             raise typer.Exit(130) from None
     _print_warnings(caught)
     out.print(latency_table(summary))
     out.print(throughput_line(summary), highlight=False)
     out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, {seq.frame_label}, first pose identity)",
               highlight=False)
+    rrd = plan.rc.rerun_path
+    if rrd is not None and (folder is None or Path(rrd).parent.resolve() != folder.path.resolve()):
+        console.print(f"Rerun recording in {rrd} (open it with: rerun {rrd})", highlight=False)  # else the folder's list
     _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, summary)
 
 
@@ -413,8 +415,9 @@ def _check_resume(record_path: Path, out_path: Path, record: dict, model_dir: Pa
     if record_path.is_file():
         check_resume(record_path, _run_tables(record, model_dir), out_path)
     else:
-        console.print(f"[yellow]warning[/] {record_path}: missing, so nothing shows that the poses in {out_path} "
-                      "are of this recording, frames and model; they are continued as if they were", highlight=False)
+        console.print(lead("warning", "yellow", f" {record_path}: missing, so nothing shows that the poses in {out_path} "
+                                                "are of this recording, frames and model; they are continued as if "
+                                                "they were"), highlight=False)
 
 
 def _write_config(path: Path, record: dict, model_dir: Path, engine_name: str, seq, plan=None) -> None:
@@ -509,10 +512,10 @@ def _print_warnings(caught) -> None:
             scans += 1
             if scans > SCAN_WARNINGS_SHOWN:
                 continue
-        console.print(f"[yellow]warning[/] {escape(msg)}", highlight=False)
+        console.print(lead("warning", "yellow", f" {msg}"), highlight=False)
     if scans > SCAN_WARNINGS_SHOWN:
-        console.print(f"[yellow]warning[/] and {scans - SCAN_WARNINGS_SHOWN} more scan warnings, one per frame, "
-                      "not shown", highlight=False)
+        console.print(lead("warning", "yellow", f" and {scans - SCAN_WARNINGS_SHOWN} more scan warnings, one per "
+                                                "frame, not shown"), highlight=False)
 
 
 def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend) -> None:
@@ -547,7 +550,7 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
             if s.ground_truth is not None:
                 scored.append(n)
         except D3LVOInputError as e:
-            console.print(f"[yellow]warning[/] {escape(str(e))}; sequence {n} runs without scoring", highlight=False)
+            console.print(lead("warning", "yellow", f" {e}; sequence {n} runs without scoring"), highlight=False)
             misfit.append(n)
     # the machine's cores split between the workers, on the engine --backend names (resolved here,
     # so every worker runs the same one)
@@ -591,7 +594,7 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
     g = gt.poses[start:stop]
     res = evaluate(Trajectory.from_poses(relative(g[0], g)), Trajectory.from_poses(est.poses), name=seq.root.name)
     for note in res.notes:
-        console.print(f"[yellow]note[/] {note}", highlight=False)
+        console.print(lead("note", "yellow", f" {note}"), highlight=False)
     out.print(report_table(EvalReport([res], "none")))
     if plot is not None:
         plot_trajectories(plot, {"GT": res.gt_poses, label: res.est_poses},

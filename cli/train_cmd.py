@@ -9,7 +9,7 @@ import typer
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors, given_on_command_line
+from .common import console, friendly_errors, given_on_command_line, lead
 from .progress import frame_progress
 
 
@@ -119,8 +119,8 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> tuple[dict, s
         # read as sizes and levels of its own): the file's model fields make way, said by name
         dropped = sorted(k for k in file["model"] if k not in ("preset", "mode", "completion", "pose_head"))
         if dropped:
-            console.print(f"[yellow]note[/] --preset {opts['preset']} replaces {config}'s [model] "
-                          f"{', '.join(dropped)}", highlight=False)
+            console.print(lead("note", "yellow", f" --preset {opts['preset']} replaces {config}'s [model] "
+                                                 f"{', '.join(dropped)}"), highlight=False)
         file["model"] = {k: v for k, v in file["model"].items() if k in ("mode", "completion", "pose_head")}
     if given("resume"):  # a resumed run takes its weights from the checkpoint, never from init
         file["train"].pop("init", None)
@@ -265,10 +265,10 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
         except TrainingInterrupted as e:
             bar.stop()
             if e.step and Path(e.path).is_file():
-                console.print(f"[yellow]interrupted[/] at step {e.step}: saved {e.path}; continue with --resume "
-                              f"{e.path}", highlight=False)
+                console.print(lead("interrupted", "yellow", f" at step {e.step}: saved {e.path}; continue with "
+                                                            f"--resume {e.path}"), highlight=False)
             else:
-                console.print("[yellow]interrupted[/] before the first step: nothing was saved", highlight=False)
+                console.print(lead("interrupted", "yellow", " before the first step: nothing was saved"), highlight=False)
             raise typer.Exit(130) from None
     if rank0:
         if rec.get("step") is None or not Path(out).is_file():

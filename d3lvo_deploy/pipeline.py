@@ -210,6 +210,14 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         require("rerun", what="--rerun")
         if Path(rc.rerun_path).is_dir():
             raise D3LVOInputError(rc.rerun_path, "is a folder; --rerun names the recording to write (e.g. run.rrd)")
+        if Path(rc.rerun_path).is_file() and not rc.overwrite:
+            raise D3LVOInputError(rc.rerun_path, "already holds a Rerun recording; --overwrite replaces it, or name "
+                                                 "another file")
+        try:
+            Path(rc.rerun_path).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise D3LVOInputError(Path(rc.rerun_path).parent, f"cannot create the recording's folder ({e.strerror})") \
+                from None
     out = Path(rc.out)
     if out.is_dir():
         raise D3LVOInputError(out, "is a folder; --out names the trajectory file to write (e.g. 09.txt)")

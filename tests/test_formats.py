@@ -584,3 +584,17 @@ def test_api_inputs_the_cli_checks_are_checked_from_python_too(tmp_path):
     mm[:, :3] *= 1000.0
     with pytest.raises(D3LVOInputError, match="must be in metres"):
         DirectOdometry(seq.calib).step(seq.image(0), mm)
+
+
+def test_brackets_in_paths_are_printed_as_they_are(small_synth, tmp_path):
+    """Folder names with brackets (`res[v2]`, `[/]`, rich's markup syntax) are named as typed, and
+    a run into one writes every result: printed through markup they were cut to `res`, or stopped
+    the run with a markup error after the poses, before the metrics."""
+    for name in ("res[v2]", "r[/]x", "[bold]b"):
+        folder = tmp_path / name
+        r = runner.invoke(app, ["run", str(small_synth), "--method", "direct", "--out-dir", str(folder)])
+        assert r.exit_code == 0, r.output
+        assert f"results in {folder}: poses.txt" in r.output, r.output
+        assert (folder / "metrics.json").is_file() and (folder / "trajectory.png").is_file()
+    r = runner.invoke(app, ["run", str(small_synth), "--method", "direct", "--out", str(tmp_path / "[x]" / "p.txt")])
+    assert r.exit_code == 0 and f"in {tmp_path / '[x]' / 'p.txt'}" in r.output, r.output

@@ -510,6 +510,17 @@ def test_rerun_recording_holds_the_run(small_model, small_synth, tmp_path):
     r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
                             "--rerun", str(tmp_path)])
     assert r.exit_code == 1 and "is a folder" in r.output and not (tmp_path / "q.txt").exists()
+    # another run's recording is not replaced unasked, and the run stops before it starts
+    before = (tmp_path / "run.rrd").read_bytes()
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "q.txt"),
+                            "--rerun", str(tmp_path / "run.rrd")])
+    assert r.exit_code == 1 and "already holds a Rerun recording; --overwrite" in r.output, r.output
+    assert (tmp_path / "run.rrd").read_bytes() == before and not (tmp_path / "q.txt").exists()
+    # a recording in a folder not made yet: made, and the output names the recording
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--method", "direct", "--out", str(tmp_path / "d.txt"),
+                            "--rerun", str(tmp_path / "new" / "d.rrd")])
+    assert r.exit_code == 0 and (tmp_path / "new" / "d.rrd").stat().st_size > 0, r.output
+    assert f"Rerun recording in {tmp_path / 'new' / 'd.rrd'}" in r.output
 
 
 def test_readme_api_example_runs_as_pasted(monkeypatch, capsys):
