@@ -3,12 +3,16 @@ copy of such a folder."""
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 from pathlib import Path
 
 import typer
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import graph_files
+from d3lvo_deploy.results import make_output_folder
 
 from .common import console, friendly_errors, given_on_command_line
 
@@ -49,6 +53,43 @@ def solver_settings(pairs: list[str]) -> dict:
     return out
 
 
+def staging_folder(out: Path, overwrite: bool) -> Path:
+    """A new folder beside `out` that the export fills, and `publish` then moves into place: an export
+    that fails or is stopped leaves an earlier one in `out` whole. `out` must be new, empty, or with
+    --overwrite hold an earlier export (its manifest.json): never only other files."""
+    if out.is_dir() and any(out.iterdir()):
+        if not (out / "manifest.json").is_file():
+            raise D3LVOInputError(out, "holds files but no manifest.json (not an export): give a new or empty "
+                                       "folder for the exported graphs")
+        if not overwrite:
+            raise D3LVOInputError(out, "already holds an export; --overwrite replaces it once the new one is "
+                                       "complete, or give another folder")
+    out = Path(os.path.abspath(out))  # `.` too has a name and a parent
+    parent = make_output_folder(out.parent, "--out", "the exported graphs")
+    stage = parent / f".{out.name}.export-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    return stage
+
+
+def publish(stage: Path, out: Path) -> None:
+    """The complete export in `stage` moved into `out` file by file (renames on one file system),
+    manifest.json last, then the earlier export's graphs that the new one lacks removed; other files
+    in `out` (a model card, the checkpoint it was exported from) stay."""
+    out.mkdir(parents=True, exist_ok=True)
+    earlier: set[str] = set()
+    if (out / "manifest.json").is_file():
+        try:
+            earlier = set(graph_files(json.loads((out / "manifest.json").read_text())))
+        except (ValueError, KeyError, TypeError):
+            pass  # an unreadable manifest: its graphs are replaced where the new export has them
+    written = [f.name for f in stage.iterdir() if f.name != "manifest.json"]
+    for name in written:
+        os.replace(stage / name, out / name)
+    os.replace(stage / "manifest.json", out / "manifest.json")
+    for name in earlier - set(written):
+        (out / name).unlink(missing_ok=True)
+
+
 def _check_conversion(onnx_dir: Path, out: Path, precision: str, export_options: list[str]) -> None:
     """--onnx converts a folder as it was exported: an fp32 one, into another folder, with no export
     option (the folder fixed its size, opset, batch axis and solver)."""
@@ -72,7 +113,7 @@ def export_command(
     onnx_dir: Path | None = typer.Option(None, "--onnx", help="Instead of --ckpt: an fp32 model folder from "
                                          "`d3lvo export` to convert with --precision fp16|int8."),
     out: Path = typer.Option(..., "--out", help="Output folder for the .onnx files and manifest.json."),
-    opset: int = typer.Option(17, "--opset", help="ONNX opset (16+: GridSample)."),
+    opset: int = typer.Option(17, "--opset", help="ONNX opset, 16 (GridSample) to 20 (torch's exporter)."),
     height: int | None = typer.Option(None, "--height", help="Input height (default: the checkpoint's)."),
     width: int | None = typer.Option(None, "--width", help="Input width (default: the checkpoint's)."),
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
@@ -83,6 +124,8 @@ def export_command(
                                      "pt_iters=10,10,10; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "
                                          "the real frames in ../shared/data and a synthetic sequence)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier export in --out (once the new "
+                                   "one is complete and checked)."),
 ) -> None:
     """Export completion, encoder and flow+pose as standard-op ONNX graphs, checked and hashed.
 
@@ -113,21 +156,27 @@ def export_command(
         given = [f"--{name.replace('_', '-')}" for name in ("opset", "height", "width", "dynamic_batch")
                  if given_on_command_line(ctx, name)] + (["--set"] if given_on_command_line(ctx, "solver") else [])
         _check_conversion(onnx_dir, out, precision, given)
-    with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
-        fp32_dir = onnx_dir or (out if precision == "fp32" else Path(tmpd) / "fp32")
-        if ckpt is not None:
-            with console.status("exporting"):
-                m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
-                                                         dynamic_batch=dynamic_batch, solver=solver_settings(solver)),
-                                      progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
-        if precision != "fp32":
-            from export.quantize import quantize_folder
+    stage = staging_folder(out, overwrite)
+    try:
+        with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
+            fp32_dir = onnx_dir or (stage if precision == "fp32" else Path(tmpd) / "fp32")
+            if ckpt is not None:
+                with console.status("exporting"):
+                    m = export_checkpoint(ckpt, ExportConfig(out=fp32_dir, opset=opset, height=height, width=width,
+                                                             dynamic_batch=dynamic_batch,
+                                                             solver=solver_settings(solver)),
+                                          progress=lambda name: console.print(f"  {name}.onnx checked", highlight=False))
+            if precision != "fp32":
+                from export.quantize import quantize_folder
 
-            seqs: list[Path] = []
-            if precision == "int8":
-                seqs = list(calib_seq) or default_calibration(Path(tmpd))
-            with console.status(f"converting to {precision}"):
-                m = quantize_folder(fp32_dir, out, precision, seqs)
+                seqs: list[Path] = []
+                if precision == "int8":
+                    seqs = list(calib_seq) or default_calibration(Path(tmpd))
+                with console.status(f"converting to {precision}"):
+                    m = quantize_folder(fp32_dir, stage, precision, seqs)
+        publish(stage, out)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)  # an export that failed or was stopped
     files = graph_files(m)
     size = sum((out / f).stat().st_size for f in files) / 1e6
     console.print(f"wrote {', '.join(files)} + manifest.json to {out} "

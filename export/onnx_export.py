@@ -20,6 +20,7 @@ from pathlib import Path
 import onnx
 import torch
 import torch.nn.functional as F
+from torch.onnx._constants import ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET
 
 import d3lvo_deploy
 from d3lvo_deploy.errors import D3LVOInputError
@@ -199,11 +200,18 @@ def export_checkpoint(ckpt: str | Path, ec: ExportConfig, progress=None) -> dict
         raise D3LVOInputError(None, f"--height/--width: {problem}")
     if ec.opset < 16:
         raise D3LVOInputError(None, f"--opset {ec.opset}: GridSample (bilinear warping) needs opset 16 or newer")
+    if ec.opset > ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET:
+        raise D3LVOInputError(None, f"--opset {ec.opset}: torch {torch.__version__} exports opset 16 to "
+                                    f"{ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET}")
     check_solver_settings(ec.solver)
     try:
         cfg = replace(cfg, height=h, width=w, **ec.solver)
     except (TypeError, ValueError) as e:
         raise D3LVOInputError(None, f"--set: {e}") from None
+    broken = [k for k, v in ck["model"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if broken:  # an exported graph would compute NaN poses, or fail on an index made of them
+        raise D3LVOInputError(ckpt, f"{len(broken)} weight tensors hold NaN or inf (first: {broken[0]}): the "
+                                    "training diverged; export a checkpoint from before it")
     model = build_model({**ck, "config": cfg})
     out = make_output_folder(Path(ec.out), "--out", "the exported graphs")
 

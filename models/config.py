@@ -10,6 +10,9 @@ COMPLETIONS = ("learned", "ipbasic")
 
 # Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
+# the point solver's pyrDown levels at most: frame t's image at the coarsest must still hold a
+# gradient and a bilinear sample around every point (a level under ~10 pixels did not)
+MAX_PYRAMID_LEVELS = 5
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
                "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained",
@@ -236,6 +239,9 @@ class D3LVOConfig:
         if not (isinstance(self.pt_iters, (tuple, list)) and self.pt_iters
                 and all(isinstance(n, int) and n >= 1 for n in self.pt_iters)):
             raise ValueError(f"pt_iters takes one step count per pyramid level, e.g. 15,15,15, not {self.pt_iters!r}")
+        if len(self.pt_iters) > MAX_PYRAMID_LEVELS:
+            raise ValueError(f"pt_iters: at most {MAX_PYRAMID_LEVELS} pyramid levels, not {len(self.pt_iters)} (each "
+                             "level halves the camera image: a sixth leaves KITTI's 1242x375 at 38x11 pixels)")
         # the solver's numbers: a negative damping or stop makes the step's solve meaningless
         for key in ("pt_stop", "pt_damping", "pt_min_gradient", "gn_damping"):
             if not getattr(self, key) >= 0:

@@ -150,10 +150,10 @@ OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${more[@]}" -
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/confidence_solver.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
   pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True, pt_fine_restart=0.001, pt_restart_depth=0.5))"
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
-"$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx"
-"$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx"
-"$D3LVO" export --ckpt "$OUT/default.best.pt" --out "$OUT/cells_onnx"
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model --overwrite
+"$D3LVO" export --ckpt "$OUT/mlp.best.pt" --out "$OUT/mlp_onnx" --overwrite
+"$D3LVO" export --ckpt "$OUT/rgb.best.pt" --out "$OUT/rgb_onnx" --overwrite
+"$D3LVO" export --ckpt "$OUT/default.best.pt" --out "$OUT/cells_onnx" --overwrite
 
 # held-out drives (seeds never trained on), static and with traffic, for docs/evaluation.md
 # static ones (seed, KITTI sequence, start); those from 221 on were rendered after the solver's
@@ -206,7 +206,7 @@ done
 # start from the shipped file with it off (and without the restart's scan check, chosen after them)
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   '$OUT/affine_off.pt', dict(pt_affine=False, pt_restart_depth=0.0))"
-"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/affine_off"
+"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/affine_off" --overwrite
 # the sweeps below select as the model card's tables of them: pt_select 0.01, no rotation gate
 SEL01="--set pt_select=0.01 --set pt_select_rotation=0"
 # the static prior pt_conf_full (a point weighs 1 once its confidence reaches it), measured on the
@@ -217,7 +217,7 @@ for s in val_traffic val_static; do
   "$D3LVO" run "$OUT/data/$s" --method direct --onnx "$OUT/affine_off" --out "$OUT/eval/direct_$s.txt" --overwrite
 done
 for c in 1 0.5 0.7 0.85; do
-  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/conf_full_$c" --set pt_conf_full=$c $SEL01
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/conf_full_$c" --overwrite --set pt_conf_full=$c $SEL01
   for s in val_traffic val_static; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/conf_full_$c" --backend onnxruntime --out "$OUT/eval/conf_full_${c}_$s.txt" \
       --overwrite
@@ -232,7 +232,7 @@ for spec in "602 03 300" "603 07 500" "604 06 200"; do
   static_drive "val_static_$((seed - 600))" "$seed" "$sq" "$start"
 done
 for p in 1 2 4 8; do
-  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/power_$p" --set pt_conf_power=$p $SEL01
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/power_$p" --overwrite --set pt_conf_power=$p $SEL01
   for s in val_traffic val_traffic_2 val_traffic_3 val_traffic_4 val_static val_static_2 val_static_3 val_static_4; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/power_$p" --backend onnxruntime --threads 1 \
       --out "$OUT/eval/power_${p}_$s.txt" --overwrite
@@ -259,7 +259,7 @@ for s in "${NEW[@]}"; do
     --out "$OUT/eval/power_4_$s.txt" --overwrite
 done
 for set in pt_conf_full=0.85 pt_select=0.02 pt_select=0.04; do
-  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/$set" $SEL01 --set "$set"
+  "$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/$set" --overwrite $SEL01 --set "$set"
   for s in "${VAL[@]}"; do
     "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/$set" --backend onnxruntime --threads 1 --out "$OUT/eval/${set}_$s.txt" \
       --overwrite
@@ -282,7 +282,7 @@ done
   "$OUT"/data/static_22[0-9] "$OUT"/data/traffic_3* "$OUT"/data/demo_909
 # the confidence read against the classical pose, as a gate in the graph (pt_select_unexplained;
 # docs/model-card.md), on the held-out drives: it does not ship
-"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/unexplained_0.15" --set pt_select_unexplained=0.15
+"$D3LVO" export --ckpt "$OUT/affine_off.pt" --out "$OUT/unexplained_0.15" --overwrite --set pt_select_unexplained=0.15
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2[12]? "$OUT"/data/static_23[01] "$OUT"/data/traffic_31[0-5] \
          "$OUT"/data/traffic_309 "$OUT"/data/demo_909; do
   "$D3LVO" run "$d" --onnx "$OUT/unexplained_0.15" --backend onnxruntime --threads 1 \
@@ -333,7 +333,7 @@ on_validation() {
   done
 }
 for t in 0.005 0.02 0.001; do
-  "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --set pt_fine_restart=$t
+  "$D3LVO" export --ckpt "$OUT/restart_off.pt" --out "$OUT/restart_$t" --overwrite --set pt_fine_restart=$t
   on_validation "restart_$t" "$OUT/restart_$t" $([ "$t" = 0.02 ] && echo classical)
 done
 # then the held-out drives again, the shipped model and its classical mode (docs/evaluation.md)
@@ -346,14 +346,14 @@ done
 # the twenty-four validation drives and then the held-out ones; it costs accuracy with traffic and
 # does not ship. Then 40 steps at the finest level, the classical mode on eight static ones (both
 # measured before the restart's scan check was chosen)
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_9" --set pt_iters=9,9,9 --set pt_restart_depth=0
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_9" --overwrite --set pt_iters=9,9,9 --set pt_restart_depth=0
 for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/heldout_?? "$OUT"/data/static_2?? \
          "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
   s=$(basename "$d")
   "$D3LVO" run "$d" --onnx "$OUT/steps_9" --backend onnxruntime --threads 1 --out "$OUT/eval/steps_9_$s.txt" --overwrite
   "$D3LVO" run "$d" --onnx "$OUT/steps_9" --method direct --out "$OUT/eval/steps_9_direct_$s.txt" --overwrite
 done
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_40" --set pt_iters=15,15,40 --set pt_restart_depth=0
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/steps_40" --overwrite --set pt_iters=15,15,40 --set pt_restart_depth=0
 for s in val_static_2 val_static_3 val_static_4 val_static_608 val_static_609 val_static_610 val_static_611 \
          val_static_614; do
   "$D3LVO" run "$OUT/data/$s" --onnx "$OUT/steps_40" --method direct --out "$OUT/eval/steps_40_direct_$s.txt" --overwrite
@@ -365,9 +365,9 @@ done
 # Then the held-out drives without it
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   '$OUT/scan_off.pt', dict(pt_restart_depth=0.0))"
-"$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_off"
+"$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_off" --overwrite
 for r in 0.5 0.7; do
-  "$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_$r" --set pt_restart_depth=$r
+  "$D3LVO" export --ckpt "$OUT/scan_off.pt" --out "$OUT/scan_$r" --overwrite --set pt_restart_depth=$r
   on_validation "scan_$r" "$OUT/scan_$r" $([ "$r" = 0.7 ] && echo classical)
 done
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
@@ -409,7 +409,7 @@ for v in shadows shadows_control; do
   .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('$OUT/${v}_solver.pt', \
     '$OUT/${v}_slim.pt', dict(pt_iters=(15, 15, 15), pt_capacity=2048, pt_scale_every=3, pt_select=0.005, \
     pt_select_rotation=0.05, pt_conf_power=4.0, pt_affine=True, pt_fine_restart=0.001, pt_restart_depth=0.5))"
-  "$D3LVO" export --ckpt "$OUT/${v}_slim.pt" --out "$OUT/$v"
+  "$D3LVO" export --ckpt "$OUT/${v}_slim.pt" --out "$OUT/$v" --overwrite
   for d in "$OUT"/data/val_traffic* "$OUT"/data/traffic_3??; do
     "$D3LVO" run "$d" --onnx "$OUT/$v" --backend onnxruntime --threads 1 --out "$OUT/eval/${v}_$(basename "$d").txt" --overwrite
   done
@@ -423,7 +423,7 @@ done
 for v in "stride_4:--set pt_median_stride=4" "stride_4_coarse_6:--set pt_median_stride=4 --set pt_iters=6,6,15"; do
   name=${v%%:*}
   # shellcheck disable=SC2086
-  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$name" ${v#*:}
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/$name" --overwrite ${v#*:}
   for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/traffic_3?? "$OUT"/data/static_2?? \
            "$OUT"/data/heldout_?? "$OUT"/data/demo_909; do
     "$D3LVO" run "$d" --onnx "$OUT/$name" --backend onnxruntime --threads 1 --out "$OUT/eval/${name}_$(basename "$d").txt" --overwrite
@@ -438,7 +438,7 @@ done
 .venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_select_scan_pass=0.7))"
-"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model --overwrite
 for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909 "$OUT"/data/val_traffic*; do
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/scan_pass_$(basename "$d").txt" --overwrite
 done

@@ -123,6 +123,64 @@ def test_export_converts_only_an_fp32_folder_as_exported(small_model, tmp_path):
     assert {f.name: f.read_bytes() for f in fp32_dir.iterdir() if f.is_file()} == before
 
 
+def test_export_replaces_an_earlier_export_only_when_asked_and_only_once_complete(small_model, tmp_path,
+                                                                                    monkeypatch):
+    """An export into a folder that holds one needs --overwrite, into a folder of other files is
+    refused, and one that stops half way (here the conversion, after writing its first file)
+    leaves the earlier export whole and no partial folder behind; a complete one replaces it."""
+    _, fp32_dir = small_model
+    out = tmp_path / "m"
+    convert = ["export", "--onnx", str(fp32_dir), "--precision", "fp16", "--out", str(out)]
+    assert runner.invoke(app, convert).exit_code == 0
+    before = {f.name: f.read_bytes() for f in out.iterdir()}
+    r = runner.invoke(app, convert)
+    assert r.exit_code == 1 and "already holds an export; --overwrite replaces it" in r.output, r.output
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    r = runner.invoke(app, [*convert[:-1], str(tmp_path / "mine"), "--overwrite"])
+    assert r.exit_code == 1 and "holds files but no manifest.json" in r.output, r.output
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"
+
+    import export.quantize
+
+    real = export.quantize.quantize_folder
+
+    def stopped(src, dst, *a, **k):
+        dst.mkdir(parents=True, exist_ok=True)
+        (dst / "completion.onnx").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export.quantize, "quantize_folder", stopped)
+    r = runner.invoke(app, [*convert, "--overwrite"])
+    assert r.exit_code == 130, r.output
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+    load_manifest(out)  # every hash still holds
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["m", "mine"]  # no staging folder left
+    monkeypatch.setattr(export.quantize, "quantize_folder", real)
+    (out / "MODEL_CARD.md").write_text("kept")  # not the export's: it stays, as the bundled folder's card
+    r = runner.invoke(app, [*convert, "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert load_manifest(out)["created"] >= json.loads(before["manifest.json"])["created"]
+    assert (out / "MODEL_CARD.md").read_text() == "kept"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["m", "mine"]
+
+
+def test_export_refuses_what_it_cannot_export(tmp_path):
+    """A checkpoint with NaN weights, an opset past the exporter's, more pyramid levels than a camera
+    image holds: one line each, before anything is written."""
+    ck = make_checkpoint(tmp_path / "ck.pt", pose_head="points", pt_iters=(2, 2, 2))
+    bad = torch.load(ck, weights_only=False)
+    name = next(k for k, v in bad["model"].items() if v.is_floating_point())
+    bad["model"][name] = torch.full_like(bad["model"][name], float("nan"))
+    torch.save(bad, tmp_path / "nan.pt")
+    for args, message in (([str(tmp_path / "nan.pt")], f"1 weight tensors hold NaN or inf (first: {name})"),
+                          ([str(ck), "--opset", "24"], "--opset 24: torch"),
+                          ([str(ck), "--set", "pt_iters=2,2,2,2,2,2"], "pt_iters: at most 5 pyramid levels, not 6")):
+        r = runner.invoke(app, ["export", "--ckpt", *args, "--out", str(tmp_path / "o")])
+        assert r.exit_code == 1 and message in r.output and "Traceback" not in r.output, (args, r.output)
+        assert not (tmp_path / "o").exists()
+
+
 def test_dynamic_batch(tmp_path):
     ck, cfg = _ckpt(tmp_path, **LEAN)
     export_checkpoint(ck, ExportConfig(out=tmp_path / "onnx", dynamic_batch=True))
