@@ -188,6 +188,7 @@ def bench_command(
         from d3lvo_deploy.results import make_output_folder
 
         make_output_folder(profile, "--profile", "the profiles")
+        earlier = set(profile.glob("*.json"))  # an earlier bench's profiles, or other files: not this run's
     if ckpt is not None or default_network or torch_compile:
         from d3lvo_deploy.extras import require
 
@@ -271,7 +272,7 @@ def bench_command(
         if profile is not None:
             from d3lvo_deploy.bench import profile_summary
 
-            top_ops = profile_summary(sorted(str(p) for p in profile.glob("*.json")))
+            top_ops = profile_summary(sorted(str(p) for p in set(profile.glob("*.json")) - earlier))
         torch_t = times["torch eager"].summary() if "torch eager" in times else None
         compiled_t = times["torch.compile"].summary() if "torch.compile" in times else None
     net = ("completion", "encoder", "flowpose")

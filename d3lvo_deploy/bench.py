@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -152,15 +153,23 @@ def timed(fn) -> float:
 
 
 def profile_summary(profile_files: list[str], top: int = 8) -> dict[str, list[tuple[str, float]]]:
-    """Per stage, the op types that took the most time (ms summed over the profiled runs)."""
+    """Per stage, the op types that took the most time (ms summed over the profiled runs); a file
+    that is not an onnxruntime profile (a list of trace events) is left out."""
     import json
     from collections import defaultdict
 
     out = {}
     for f in profile_files:
-        events = json.load(open(f))
+        try:
+            events = json.loads(Path(f).read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(events, list):
+            continue
         by_op: dict[str, float] = defaultdict(float)
         for e in events:
+            if not isinstance(e, dict):
+                continue
             if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time"):
                 by_op[e.get("args", {}).get("op_name", "?")] += e.get("dur", 0) / 1000.0
         stage = f.rsplit("/", 1)[-1].split("_", 1)[0]

@@ -73,6 +73,24 @@ needs_openvino = pytest.mark.skipif(importlib.util.find_spec("openvino") is None
                                     reason="the [openvino] extra is not installed")
 
 
+def test_bench_profile_lists_only_this_runs_ops(small_model, small_synth, tmp_path):
+    """--profile into a folder that holds an earlier profile (its stage named so, with an op no graph
+    has) and another JSON file: the summary lists this run's stages and ops only, and neither
+    stops it after the benching."""
+    _, onnx_dir = small_model
+    prof = tmp_path / "prof"
+    prof.mkdir()
+    stale = [{"cat": "Node", "name": "x_kernel_time", "dur": 10**9, "args": {"op_name": "StaleOp"}}]
+    (prof / "classical_2020-01-01_00-00-00.json").write_text(json.dumps(stale))
+    (prof / "manifest.json").write_text((onnx_dir / "manifest.json").read_text())
+    r = runner.invoke(app, ["bench", "--onnx", str(onnx_dir), "--seq-dir", str(small_synth), "--runs", "1",
+                            "--threads", "1", "--no-torch", "--json", "--backend", "onnxruntime", "--profile", str(prof)])
+    assert r.exit_code == 0, r.output
+    ops = json.loads(r.stdout)["top_ops_ms"]
+    assert set(ops) == {"completion", "encoder", "flowpose"}, ops  # the small model has no classical stage
+    assert "Conv" in {op for op, _ in ops["encoder"]} and "StaleOp" not in json.dumps(ops)
+
+
 @needs_openvino
 def test_openvino_outputs_equal_onnxruntime(small_model, small_synth):
     """Same folder, same inputs: every stage output of OpenVINO (f32) equals onnxruntime's."""
