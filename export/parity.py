@@ -23,7 +23,7 @@ from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, fl
 from d3lvo_deploy.points import SCAN_DEPTH_INPUT, SolverFrame, point_config, solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
-from models.config import D3LVOConfig
+from models.config import SOLVER_KEYS, D3LVOConfig
 
 from .onnx_export import sha256
 
@@ -84,8 +84,11 @@ class ParityReport:
 def _torch_model(ckpt: Path, manifest: dict):
     ck = load_checkpoint(ckpt)
     cfg = D3LVOConfig.from_dict(manifest["model_config"])
-    same = {k: v for k, v in cfg.to_dict().items() if k not in ("height", "width")}
-    mine = {k: v for k, v in ck["config"].to_dict().items() if k not in ("height", "width")}
+    # the size and the solver's settings (no weights; `d3lvo export --set`) may differ: the torch
+    # model takes the export's
+    free = ("height", "width", *SOLVER_KEYS)
+    same = {k: v for k, v in cfg.to_dict().items() if k not in free}
+    mine = {k: v for k, v in ck["config"].to_dict().items() if k not in free}
     if same != mine:
         differ = sorted(k for k in set(same) | set(mine) if same.get(k) != mine.get(k))
         raise D3LVOInputError(ckpt, f"the ONNX folder was exported with another model config (differs in: "

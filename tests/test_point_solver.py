@@ -1150,6 +1150,11 @@ def test_export_set_reaches_the_graph(points_model, small_synth, tmp_path):
     torch_traj = predict_sequence(build_model({**load_checkpoint(ck), "config": D3LVOConfig.from_dict(m)}), small_synth)
     run_sequence(KittiSequence.open(small_synth), tmp_path / "o", RunConfig(out=tmp_path / "p.txt"))
     np.testing.assert_allclose(read_poses(tmp_path / "p.txt").poses[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
+    # parity holds the export to its checkpoint under the export's own solver settings
+    from export.parity import run_parity
+
+    rep = run_parity(ck, tmp_path / "o", small_synth, frames=2)
+    assert rep.passed, rep.to_dict()
 
 
 def test_no_points_no_motion_beyond_the_start():
