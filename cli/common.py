@@ -16,8 +16,8 @@ def _console(stderr: bool) -> Console:
     there that every cell stays whole. No markup: paths and user input go into most lines, and rich
     would read `[v2]` in a folder name as a style (and `[/]` as an error after the work is done);
     a coloured word is a `Text` (`lead`)."""
-    c = Console(stderr=stderr, markup=False)
-    return c if c.is_terminal else Console(stderr=stderr, width=200, markup=False)
+    c = Console(stderr=stderr, markup=False, emoji=False)  # `:cat:` in a path stays as typed
+    return c if c.is_terminal else Console(stderr=stderr, width=200, markup=False, emoji=False)
 
 
 def lead(word: str, style: str, text: str = "") -> Text:

@@ -12,7 +12,7 @@ import typer
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import graph_files
-from d3lvo_deploy.results import make_output_folder
+from d3lvo_deploy.results import make_output_folder, remove_if_empty
 
 from .common import console, friendly_errors, given_on_command_line
 
@@ -53,10 +53,18 @@ def solver_settings(pairs: list[str]) -> dict:
     return out
 
 
+STAGING = ".export-"  # + the process id: the folder inside --out that an export fills first
+
+
 def staging_folder(out: Path, overwrite: bool) -> Path:
-    """A new folder beside `out` that the export fills, and `publish` then moves into place: an export
-    that fails or is stopped leaves an earlier one in `out` whole. `out` must be new, empty, or with
-    --overwrite hold an earlier export (its manifest.json): never only other files."""
+    """A hidden folder inside `out` that the export fills, and `publish` then moves from: an export
+    that fails or is stopped leaves an earlier one in `out` whole, and the moves stay on one file
+    system whatever `out` is mounted on. `out` must be new, empty, or with --overwrite hold an
+    earlier export (its manifest.json): never only other files. A staging folder that a killed
+    export left is removed."""
+    if out.is_dir():
+        for left in out.glob(STAGING + "*"):
+            shutil.rmtree(left, ignore_errors=True)
     if out.is_dir() and any(out.iterdir()):
         if not (out / "manifest.json").is_file():
             raise D3LVOInputError(out, "holds files but no manifest.json (not an export): give a new or empty "
@@ -64,23 +72,19 @@ def staging_folder(out: Path, overwrite: bool) -> Path:
         if not overwrite:
             raise D3LVOInputError(out, "already holds an export; --overwrite replaces it once the new one is "
                                        "complete, or give another folder")
-    out = Path(os.path.abspath(out))  # `.` too has a name and a parent
-    parent = make_output_folder(out.parent, "--out", "the exported graphs")
-    stage = parent / f".{out.name}.export-{os.getpid()}"
-    shutil.rmtree(stage, ignore_errors=True)
-    return stage
+    return make_output_folder(out, "--out", "the exported graphs") / f"{STAGING}{os.getpid()}"
 
 
 def publish(stage: Path, out: Path) -> None:
-    """The complete export in `stage` moved into `out` file by file (renames on one file system),
-    manifest.json last, then the earlier export's graphs that the new one lacks removed; other files
-    in `out` (a model card, the checkpoint it was exported from) stay."""
-    out.mkdir(parents=True, exist_ok=True)
+    """The complete export in `stage` moved into `out` file by file, manifest.json last, then the
+    earlier export's graphs that the new one lacks removed; other files in `out` (a model card,
+    the checkpoint it was exported from) stay. A stop in these few renames can leave new graphs
+    beside the earlier manifest, which their sha256 then refuses to load."""
     earlier: set[str] = set()
     if (out / "manifest.json").is_file():
         try:
-            earlier = set(graph_files(json.loads((out / "manifest.json").read_text())))
-        except (ValueError, KeyError, TypeError):
+            earlier = {f for f in graph_files(json.loads((out / "manifest.json").read_text())) if Path(f).name == f}
+        except (ValueError, KeyError, TypeError, AttributeError):
             pass  # an unreadable manifest: its graphs are replaced where the new export has them
     written = [f.name for f in stage.iterdir() if f.name != "manifest.json"]
     for name in written:
@@ -156,6 +160,7 @@ def export_command(
         given = [f"--{name.replace('_', '-')}" for name in ("opset", "height", "width", "dynamic_batch")
                  if given_on_command_line(ctx, name)] + (["--set"] if given_on_command_line(ctx, "solver") else [])
         _check_conversion(onnx_dir, out, precision, given)
+    made = not out.exists()
     stage = staging_folder(out, overwrite)
     try:
         with tempfile.TemporaryDirectory(prefix="d3lvo-export-") as tmpd:
@@ -177,6 +182,8 @@ def export_command(
         publish(stage, out)
     finally:
         shutil.rmtree(stage, ignore_errors=True)  # an export that failed or was stopped
+        if made:
+            remove_if_empty(out)
     files = graph_files(m)
     size = sum((out / f).stat().st_size for f in files) / 1e6
     console.print(f"wrote {', '.join(files)} + manifest.json to {out} "

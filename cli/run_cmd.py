@@ -113,7 +113,8 @@ def run_command(
     start: int = typer.Option(0, "--start", help="First frame."),
     end: int | None = typer.Option(None, "--end", help="One past the last frame."),
     resume: bool = typer.Option(False, "--resume", help="Continue an interrupted run (name its --out-dir or --out)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace poses an earlier run left in the output."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace poses (and a --rerun recording) an earlier run "
+                                   "left in the output."),
     viz: Path | None = typer.Option(None, "--viz", help="Folder for pictures of what the network sees (image, LiDAR "
                                     "and completed depth, flow, pose confidence), one PNG per --viz-every frames; "
                                     "a relative path lies inside the results folder."),

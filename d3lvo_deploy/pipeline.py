@@ -210,14 +210,11 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         require("rerun", what="--rerun")
         if Path(rc.rerun_path).is_dir():
             raise D3LVOInputError(rc.rerun_path, "is a folder; --rerun names the recording to write (e.g. run.rrd)")
-        if Path(rc.rerun_path).is_file() and not rc.overwrite:
+        if Path(rc.rerun_path).is_file() and rc.resume:  # the interrupted run's recording stays as it is
+            rc = replace(rc, rerun_path=_unused(Path(rc.rerun_path), "resumed"))
+        elif Path(rc.rerun_path).is_file() and not rc.overwrite:
             raise D3LVOInputError(rc.rerun_path, "already holds a Rerun recording; --overwrite replaces it, or name "
                                                  "another file")
-        try:
-            Path(rc.rerun_path).parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise D3LVOInputError(Path(rc.rerun_path).parent, f"cannot create the recording's folder ({e.strerror})") \
-                from None
     out = Path(rc.out)
     if out.is_dir():
         raise D3LVOInputError(out, "is a folder; --out names the trajectory file to write (e.g. 09.txt)")
@@ -229,6 +226,12 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
+    if rc.rerun_path is not None:
+        try:
+            Path(rc.rerun_path).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise D3LVOInputError(Path(rc.rerun_path).parent, f"cannot create the recording's folder ({e.strerror})") \
+                from None
     n = end - rc.start
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
         warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "
@@ -263,6 +266,15 @@ def engine_depth(backend: str, splits: bool) -> int:
     """A pipeline's depth on an engine (`pipeline_depth`, the bench's pipelined rate): three where
     it measured faster, onnxruntime, and the sessions' threads can be split; else two."""
     return 3 if splits and backend == "onnxruntime" else 2
+
+
+def _unused(path: Path, word: str) -> Path:
+    """path's name with `-word` (then `-word-2`, ...) before its suffix: the first that is free."""
+    k, candidate = 1, path.with_name(f"{path.stem}-{word}{path.suffix}")
+    while candidate.exists():
+        k += 1
+        candidate = path.with_name(f"{path.stem}-{word}-{k}{path.suffix}")
+    return candidate
 
 
 def run_sequence(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),

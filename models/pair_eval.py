@@ -57,6 +57,8 @@ def moving_cells(model: D3LVO, seq: str, pairs: int = 48) -> dict[str, np.ndarra
                               "pixel_moving": []}
     for i in idx:
         b = {k: v[None] for k, v in data[int(i)].items()}
+        if float(b["moving"].min()) < 0:  # a frame without its motion mask: not scored, as `pair_metrics`
+            continue
         out = model(b["rgb1"], b["rgb2"], b["depth1"], b["depth2"], b["K"], b["init"], data.solver_inputs(int(i)))
         c = out["confidence"][0]
         s = b["moving"].shape[-1] // c.shape[-1]

@@ -125,6 +125,18 @@ def test_split_moving_cells_of_a_traffic_drive(busy_street, tmp_path):
     h, w = model.cfg.height, model.cfg.width
     on_cells = cells["pixel_score"].reshape(-1, h, w)[:, ::4, ::4]
     np.testing.assert_allclose(on_cells, cells["score"].reshape(on_cells.shape), atol=1e-5)  # float32 grid
+    # between cell centres, what `point_confidence` gives a point seen at that pixel
+    from models.data import PairDataset
+
+    fx, fy, cx, cy = PairDataset([str(busy_street)], model.cfg, augment=None)[0]["K"].double().tolist()
+    rng = np.random.default_rng(0)
+    u, v = rng.integers(0, w, 50), rng.integers(0, h, 50)
+    z = rng.uniform(3.0, 40.0, 50)
+    points = torch.tensor(np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1)[None], dtype=torch.float32)
+    K = torch.tensor([[fx, fy, cx, cy]], dtype=torch.float32)
+    conf = torch.from_numpy(-cells["score"].reshape(on_cells.shape)[:1, None])
+    want = model.point_pose.point_confidence(conf, points, K)[0].numpy()
+    np.testing.assert_allclose(-cells["pixel_score"].reshape(-1, h, w)[0, v, u], want, atol=1e-4)
     print(f"AUROC of low confidence for moving cells {split['moving_auroc']:.4f}, pixels {split['pixel_auroc']:.4f}")
     (tmp_path / "image_2").mkdir()
     with pytest.raises(D3LVOInputError, match="needs motion_2/, flow_2/, depth_2/"):

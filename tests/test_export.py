@@ -153,15 +153,24 @@ def test_export_replaces_an_earlier_export_only_when_asked_and_only_once_complet
     monkeypatch.setattr(export.quantize, "quantize_folder", stopped)
     r = runner.invoke(app, [*convert, "--overwrite"])
     assert r.exit_code == 130, r.output
-    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before  # no staging folder left either
     load_manifest(out)  # every hash still holds
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["m", "mine"]  # no staging folder left
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["m", "mine"]
     monkeypatch.setattr(export.quantize, "quantize_folder", real)
-    (out / "MODEL_CARD.md").write_text("kept")  # not the export's: it stays, as the bundled folder's card
+    # a complete export replaces the earlier one's graphs, drops a graph only the earlier one had,
+    # and keeps what is not the export's (as the bundled folder's model card and checkpoint)
+    (out / "MODEL_CARD.md").write_text("kept")
+    (out / "encoder.onnx").write_bytes(b"earlier")
+    (out / "extra.onnx").write_bytes(b"earlier")
+    m = json.loads(before["manifest.json"])
+    m["stages"]["extra"] = {"file": "extra.onnx"}
+    (out / "manifest.json").write_text(json.dumps(m))
     r = runner.invoke(app, [*convert, "--overwrite"])
     assert r.exit_code == 0, r.output
-    assert load_manifest(out)["created"] >= json.loads(before["manifest.json"])["created"]
+    assert (out / "encoder.onnx").read_bytes() == before["encoder.onnx"] and not (out / "extra.onnx").exists()
     assert (out / "MODEL_CARD.md").read_text() == "kept"
+    load_manifest(out)
+    assert sorted(x.name for x in out.iterdir()) == sorted([*before, "MODEL_CARD.md"])  # no staging folder
     assert sorted(x.name for x in tmp_path.iterdir()) == ["m", "mine"]
 
 

@@ -588,9 +588,9 @@ def test_api_inputs_the_cli_checks_are_checked_from_python_too(tmp_path):
 
 def test_brackets_in_paths_are_printed_as_they_are(small_synth, tmp_path):
     """Folder names with brackets (`res[v2]`, `[/]`, rich's markup syntax) are named as typed, and
-    a run into one writes every result: printed through markup they were cut to `res`, or stopped
-    the run with a markup error after the poses, before the metrics."""
-    for name in ("res[v2]", "r[/]x", "[bold]b"):
+    a run into one writes every result: read as markup, `res[v2]` would print as `res`, and `[/]`
+    would stop the run with a markup error after the poses, before the metrics."""
+    for name in ("res[v2]", "r[/]x", "[bold]b", "e:cat:x"):  # and no emoji code read into a name
         folder = tmp_path / name
         r = runner.invoke(app, ["run", str(small_synth), "--method", "direct", "--out-dir", str(folder)])
         assert r.exit_code == 0, r.output

@@ -521,6 +521,15 @@ def test_rerun_recording_holds_the_run(small_model, small_synth, tmp_path):
                             "--rerun", str(tmp_path / "new" / "d.rrd")])
     assert r.exit_code == 0 and (tmp_path / "new" / "d.rrd").stat().st_size > 0, r.output
     assert f"Rerun recording in {tmp_path / 'new' / 'd.rrd'}" in r.output
+    # a resumed run (the same command with --resume) records beside the interrupted run's recording
+    first = (tmp_path / "new" / "d.rrd").read_bytes()
+    lines = (tmp_path / "d.txt").read_text().splitlines(keepends=True)
+    (tmp_path / "d.txt").write_text("".join(lines[:2]))  # as a run stopped after two poses leaves it
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--method", "direct", "--out", str(tmp_path / "d.txt"),
+                            "--rerun", str(tmp_path / "new" / "d.rrd"), "--resume"])
+    assert r.exit_code == 0 and f"Rerun recording in {tmp_path / 'new' / 'd-resumed.rrd'}" in r.output, r.output
+    assert (tmp_path / "new" / "d.rrd").read_bytes() == first and (tmp_path / "new" / "d-resumed.rrd").stat().st_size
+    assert len((tmp_path / "d.txt").read_text().splitlines()) == len(lines)
 
 
 def test_readme_api_example_runs_as_pasted(monkeypatch, capsys):
