@@ -59,7 +59,9 @@ RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", 
 
 
 # what a results folder's config says of its recording alone, not taken for another one
-RECORDING_KEYS = ("fmt", "image_topic", "cloud_topic", "info_topic", "max_dt")
+# what belongs to the recording a config repeats: another recording given on the command line
+# brings its own (its format guessed again, its topics, calibration and ground truth found beside it)
+RECORDING_KEYS = ("fmt", "image_topic", "cloud_topic", "info_topic", "max_dt", "calib", "gt")
 
 
 def throughput_line(summary) -> str:
@@ -162,17 +164,17 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
     from d3lvo_deploy.results import read_config
 
     table = read_config(config)
-    _check_model(config, table, opts)
     unknown = sorted(set(table) - set(RUN_KEYS))
     if unknown:
         raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
     hints = typing.get_type_hints(inspect.unwrap(run_command))
     for k, v in table.items():
-        if k in RECORDING_KEYS and (given("path") or given("seq_dir")):
-            continue  # another recording: its own format (guessed again) and topics
+        if (k in RECORDING_KEYS or k == "path") and (given("path") or given("seq_dir")):
+            continue  # another recording
         if not given(k):
             opts[k] = _config_value(config, k, v, hints[k])
+    _check_model(config, opts)
     return opts
 
 
@@ -187,15 +189,15 @@ def _config_value(config: Path, key: str, value, hint):
     return converted(value, kind)
 
 
-def _check_model(config: Path, run: dict, opts: dict) -> None:
+def _check_model(config: Path, opts: dict) -> None:
     """A repeat on another model gives other poses: say so (the run itself goes ahead)."""
     from d3lvo_deploy.manifest import sha256_file
     from d3lvo_deploy.results import CONFIG, read_toml
 
     path = config / CONFIG if config.is_dir() else config
-    recorded = read_toml(path).get("model", {}).get("manifest_sha256")
-    onnx = opts["onnx"] if "onnx" not in run else Path(run["onnx"])
-    manifest = resolve_model_dir(onnx) / "manifest.json"
+    model = read_toml(path).get("model")
+    recorded = model.get("manifest_sha256") if isinstance(model, dict) else None
+    manifest = resolve_model_dir(opts["onnx"]) / "manifest.json"
     if recorded and manifest.is_file() and sha256_file(manifest) != recorded:
         console.print(lead("warning", "yellow", f" {manifest} differs from the model {path} recorded "
                                                 f"(sha256 {recorded[:12]}...): the poses will differ"), highlight=False)
@@ -482,6 +484,8 @@ def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, 
     if folder is not None:
         if res is not None:
             written.append(folder.write_json(METRICS, res.to_dict()))
+        else:  # an earlier run's scores (--overwrite) are not this run's
+            (folder.path / METRICS).unlink(missing_ok=True)
         written.append(folder.path / "config.toml")
         if plot is not None:
             written.append(plot)

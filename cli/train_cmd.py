@@ -196,11 +196,18 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
             raise D3LVOInputError(d, f"has {len(s)} frame: training and validation need pairs, two frames at least")
     if int(os.environ.get("RANK", "0")) == 0:  # the rank that writes the checkpoints
         _check_out(Path(out))
-        if resume is None:  # a new training would overwrite an earlier one's weights without a word
+        record = Path(out).with_suffix(".toml")  # the resolved configuration the training writes
+        if config is not None and record.resolve() == Path(config).resolve():
+            raise D3LVOInputError(config, f"is where --out {out} writes its training's resolved configuration: "
+                                          "name the checkpoint otherwise (e.g. --out "
+                                          f"{Path(out).with_name(Path(out).stem + '_run.pt')})")
+        continues = resume is not None and Path(out).resolve() == Path(resume).resolve()
+        if not continues:  # a new training (or one resumed into another file) would overwrite an earlier one
             old = [p for p in (Path(out), best_path(out)) if p.is_file()]
             if old:
+                also = f" (--resume {resume} writes into --out, not into itself)" if resume is not None else ""
                 raise D3LVOInputError(old[0], f"exists already, from an earlier training: --resume {out} continues it; "
-                                              "a new training needs another --out (or the old files moved away)")
+                                              f"a new training needs another --out (or the old files moved away){also}")
     if resume is not None:
         ck = load_checkpoint(resume)
         last = min(steps, stop_at) if stop_at is not None else steps

@@ -119,9 +119,11 @@ def read_toml(path: str | Path, what: str = "config file") -> dict:
     if not path.is_file():
         raise D3LVOInputError(path, f"{what} not found")
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
         raise D3LVOInputError(path, f"is not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:  # TOML is UTF-8 (a comment saved as Latin-1, say)
+        raise D3LVOInputError(path, f"is not UTF-8 text, as TOML must be (byte {e.start})") from None
 
 
 def read_config(path: str | Path) -> dict:

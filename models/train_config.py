@@ -13,6 +13,7 @@ is repeated with `--config runs/x.toml`.
 
 from __future__ import annotations
 
+import typing
 from dataclasses import MISSING, asdict, fields
 from pathlib import Path
 
@@ -28,12 +29,20 @@ TABLES = ("model", "train", "loss", "augment")
 
 
 def _defaults(cls) -> dict:
+    """Each field's default, or where that is None the type its hint allows besides None (so that
+    a file's `stop_at = "one"` is refused as a whole number is wanted, not met at the first step)."""
+    hints = typing.get_type_hints(cls)
     out = {}
     for f in fields(cls):
         if f.default is not MISSING:
             out[f.name] = f.default
         elif f.default_factory is not MISSING:  # type: ignore[misc]
             out[f.name] = f.default_factory()  # type: ignore[misc]
+        else:
+            continue
+        if out[f.name] is None:
+            kinds = [t for t in typing.get_args(hints[f.name]) if t is not type(None)]
+            out[f.name] = kinds[0] if len(kinds) == 1 and isinstance(kinds[0], type) else None
     return out
 
 
@@ -46,7 +55,8 @@ def _check_type(path: Path, table: str, key: str, value, default) -> object:
             example = list(default) or ["a", "b"]
             raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be a list of {describe(default)}, "
                                         f"like {example!r}")
-        raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be {describe(default)}, like {default!r}")
+        like = "" if isinstance(default, type) else f", like {default!r}"
+        raise D3LVOInputError(path, f"[{table}] {key} = {value!r} should be {describe(default)}{like}")
     return converted(value, default)
 
 

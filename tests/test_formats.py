@@ -598,3 +598,36 @@ def test_brackets_in_paths_are_printed_as_they_are(small_synth, tmp_path):
         assert (folder / "metrics.json").is_file() and (folder / "trajectory.png").is_file()
     r = runner.invoke(app, ["run", str(small_synth), "--method", "direct", "--out", str(tmp_path / "[x]" / "p.txt")])
     assert r.exit_code == 0 and f"in {tmp_path / '[x]' / 'p.txt'}" in r.output, r.output
+
+
+def test_a_config_repeated_on_another_recording_scores_it_against_its_own_ground_truth(tmp_path):
+    """The config's `gt` and `calib` belong to its recording: repeated on another one, the run is
+    scored against the other's own poses.txt (as `d3lvo eval` scores it), not the old ground truth;
+    an overwritten results folder keeps no earlier run's scores where this run has none."""
+    shutil.copytree(TINY, tmp_path / "other")
+    poses = read_poses(TINY / "poses.txt").poses.copy()
+    poses[:, :3, 3] *= 3.0  # a ground truth of some other drive
+    np.savetxt(tmp_path / "wrong_gt.txt", poses[:, :3].reshape(len(poses), 12))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[run]\npath = "{TINY}"\nmethod = "direct"\ngt = "{tmp_path / "wrong_gt.txt"}"\n')
+    r = runner.invoke(app, ["run", str(tmp_path / "other"), "--config", str(cfg), "--out-dir", str(tmp_path / "r")])
+    assert r.exit_code == 0, r.output
+    e = runner.invoke(app, ["eval", "--gt", str(tmp_path / "other" / "poses.txt"), "--est", str(tmp_path / "r" / "poses.txt"),
+                            "--json"])
+    want = json.loads(e.stdout)["ate"]
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["ate"] == pytest.approx(want, abs=1e-9)
+    (tmp_path / "other" / "poses.txt").unlink()
+    r = runner.invoke(app, ["run", str(tmp_path / "other"), "--method", "direct", "--out-dir", str(tmp_path / "r"),
+                            "--overwrite"])
+    assert r.exit_code == 0 and "no metrics" in r.output, r.output
+    assert not (tmp_path / "r" / "metrics.json").exists()
+
+
+def test_a_config_file_that_is_not_utf8_or_has_a_non_table_model_is_one_line(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_bytes(f'# mod\xe8le\n[run]\npath = "{TINY}"\n'.encode("latin-1"))
+    r = runner.invoke(app, ["run", "--config", str(cfg), "--method", "direct", "--out", str(tmp_path / "p.txt")])
+    assert r.exit_code == 1 and "is not UTF-8 text" in r.output and "Traceback" not in r.output, r.output
+    cfg.write_text(f'model = "x"\n[run]\npath = "{TINY}"\nmethod = "direct"\n')  # no [model] table: nothing to check
+    r = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "p.txt")])
+    assert r.exit_code == 0, r.output

@@ -193,6 +193,39 @@ def test_training_data_without_poses_is_refused_before_any_work(small_synth, tmp
     assert not re.search(r"\s0/\d+\s", r.output) and not (tmp_path / "a.pt").exists()
 
 
+def test_training_leaves_the_users_files_alone(small_synth, tmp_path):
+    """A training writes its resolved configuration beside its checkpoint (--out x.pt: x.toml):
+    where that is the --config file itself, or --out holds another training's checkpoint that a
+    --resume would overwrite, it stops before any work; and a config's value of the wrong kind for
+    a setting without a default (stop_at, init, depth_cache) is one line naming the key."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    mine = tmp_path / "exp.toml"
+    text = f'# my experiment\n[model]\npreset = "small"\n[train]\ndata = ["{small_synth}"]\nsteps = 2\n'
+    mine.write_text(text)
+    r = CliRunner().invoke(app, ["train", "--config", str(mine), "--out", str(tmp_path / "exp.pt")])
+    assert r.exit_code == 1 and "is where --out" in r.output and "resolved configuration" in r.output, r.output
+    assert mine.read_text() == text and not (tmp_path / "exp.pt").exists()
+    other = tmp_path / "other.pt"
+    other.write_bytes(b"another training's weights")
+    from conftest import make_checkpoint
+
+    resumed = make_checkpoint(tmp_path / "r.pt")  # at step 7
+    r = CliRunner().invoke(app, ["train", "--data", str(small_synth), "--resume", str(resumed), "--out", str(other),
+                                 "--steps", "20"])
+    assert r.exit_code == 1 and "exists already" in r.output and "writes into --out" in r.output, r.output
+    assert other.read_bytes() == b"another training's weights"
+    for line, words in (('stop_at = "one"', "stop_at = 'one' should be a whole number"),
+                        ("stop_at = 1.5", "stop_at = 1.5 should be a whole number"),
+                        ("init = 5", "init = 5 should be a quoted string"),
+                        ("depth_cache = 5", "depth_cache = 5 should be a quoted string")):
+        mine.write_text(text + line + "\n")
+        r = CliRunner().invoke(app, ["train", "--config", str(mine), "--out", str(tmp_path / "new.pt")])
+        assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, (line, r.output)
+
+
 def test_resume_continues_the_step_count(small_synth, tmp_path):
     from typer.testing import CliRunner
 
