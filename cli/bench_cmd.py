@@ -155,6 +155,8 @@ def bench_command(
         problem = input_size_problem(height, width)
         if problem:
             raise D3LVOInputError(None, f"--height {height} --width {width}: {problem}")
+    if ckpt is not None and onnx is not None:
+        raise D3LVOInputError(None, "give --onnx (an exported folder) or --ckpt (a checkpoint, exported first), not both")
     if height is not None and onnx is not None:
         raise D3LVOInputError(onnx, "an exported folder has a fixed size; use --ckpt (or neither) with --height/--width")
     if precision not in ("fp32", "fp16", "int8"):
@@ -167,7 +169,7 @@ def bench_command(
         raise D3LVOInputError(None, "--precision needs --ckpt or --height/--width (the bundled model is fp32)")
     # without --backend, every installed engine, listed after any export: listing imports OpenVINO,
     # whose pybind11 module slows torch's exporter (docs/export-and-parity.md)
-    engines = None if backend is None else [b.strip() for b in backend.split(",") if b.strip()]
+    engines = None if backend is None else list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))
     unknown = [] if engines is None else [b for b in engines or [backend] if b not in BACKENDS]
     if unknown:  # an engine we do not know, or a list that names none
         raise D3LVOInputError(None, f"--backend takes {', '.join(BACKENDS)} (comma-separated), not {unknown[0]!r}")
@@ -197,7 +199,9 @@ def bench_command(
     if seq_dir is not None:
         from d3lvo_deploy.sequence import KittiSequence
 
-        KittiSequence.open(seq_dir)  # a bad folder is one error before an export
+        if len(KittiSequence.open(seq_dir)) < 2:  # a bad folder is one error before an export
+            # one frame would be timed against itself: no motion, a solver that stops at once
+            raise D3LVOInputError(seq_dir, "bench needs at least 2 frames (it times frame pairs)")
     if seq_dir is None and find_real_frames() is None:
         from d3lvo_deploy.extras import require
 

@@ -105,8 +105,9 @@ def demo_command(
         end = ", ".join(f"{v:.2f}" for v in rp[-1, :3, 3])
         out.print(f"real frames: {len(rp)} poses, a {dist:.2f} m path estimated, ending at ({end}) m in cam0 "
                   "(docs/evaluation.md compares it with LiDAR-only odometry). No ground truth "
-                  "exists for these frames, so no accuracy is claimed; the bundled model was trained on synthetic "
-                  "data only and is not meant for real KITTI accuracy.", highlight=False)
+                  "exists for these frames, so no accuracy is claimed"
+                  + ("; the bundled model was trained on synthetic data only and is not meant for real KITTI "
+                     "accuracy." if onnx is None else "."), highlight=False)
         console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)
     size = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {size:.0f} MB "
@@ -118,5 +119,8 @@ def _rendered(seq_dir: Path, cfg) -> bool:
     meta = seq_dir / "synth.json"
     if not meta.is_file():
         return False
-    same = json.loads(meta.read_text()) == json.loads(json.dumps(cfg.meta()))  # what the generator writes
+    try:
+        same = json.loads(meta.read_text()) == json.loads(json.dumps(cfg.meta()))  # what the generator writes
+    except (ValueError, OSError):
+        return False  # unreadable: not this drive, rendered again
     return same and len(list((seq_dir / "image_2").glob("*.png"))) == cfg.frames and (seq_dir / "poses.txt").is_file()

@@ -135,7 +135,8 @@ def test_cli_bench_size_needs_both_and_no_fixed_folder(small_model):
                         (["--height", "-16", "--width", "64"], "input 64x-16 is too small"),
                         (["--backend", "onnxruntime", "--ov-precision", "bf16"], "--ov-precision applies to OpenVINO"),
                         (["--seq-dir", "nowhere"], "nowhere: sequence folder not found"),
-                        (["--profile", __file__], "is a file; --profile names the folder for the profiles")):
+                        (["--profile", __file__], "is a file; --profile names the folder for the profiles"),
+                        (["--onnx", str(onnx_dir), "--ckpt", str(onnx_dir.parent / "ck.pt")], "not both")):
         r = runner.invoke(app, ["bench", *args])
         assert r.exit_code == 1 and words in r.output and "Traceback" not in r.output, (args, r.output)
 
@@ -317,3 +318,21 @@ def test_cli_bench_times_torch_in_turns_with_the_engines(small_model, small_synt
     assert timed == ["engine"] * 3 + ["torch"] * 2 + ["engine"] * 5 + ["torch"] * 5 + ["engine"] * 2 + ["torch"] * 2
     d = json.loads(r.stdout)
     assert d["ort_over_torch"] > 0 and set(d["torch_stages_ms"]) >= {"completion", "encoder", "flowpose"}
+
+
+def test_cli_bench_refuses_a_single_frame(tmp_path):
+    """One frame would be timed against itself: no motion, a solver that stops at once, times too
+    good to be true."""
+    import shutil
+
+    from conftest import ROOT
+
+    one = tmp_path / "one"
+    shutil.copytree(ROOT / "tests" / "data" / "tiny_seq", one)
+    for sub, ext in (("image_2", ".png"), ("velodyne", ".bin")):
+        for k in (1, 2):
+            (one / sub / f"{k:06d}{ext}").unlink()
+    for name in ("times.txt", "poses.txt"):
+        (one / name).write_text((one / name).read_text().splitlines()[0] + "\n")
+    r = runner.invoke(app, ["bench", "--seq-dir", str(one), "--runs", "1", "--no-torch"])
+    assert r.exit_code == 1 and "bench needs at least 2 frames" in r.output and str(one) in r.output, r.output

@@ -97,3 +97,14 @@ def test_demo_reuses_a_drive_it_rendered_before(small_synth):
     assert _rendered(small_synth, cfg)
     assert not _rendered(small_synth, replace(cfg, seed=8))
     assert not _rendered(small_synth, replace(cfg, frames=7))
+
+
+def test_demo_renders_again_over_an_unreadable_drive_record(tmp_path):
+    """A demo folder whose synth.json is empty or garbage is not the demo's drive: rendered again,
+    not a traceback."""
+    from cli.demo_cmd import _rendered
+    from d3lvo_deploy.synth.generator import SynthConfig
+
+    for text in ("", "garbage"):
+        (tmp_path / "synth.json").write_text(text)
+        assert _rendered(tmp_path, SynthConfig(frames=2)) is False
