@@ -196,11 +196,6 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
             raise D3LVOInputError(d, f"has {len(s)} frame: training and validation need pairs, two frames at least")
     if int(os.environ.get("RANK", "0")) == 0:  # the rank that writes the checkpoints
         _check_out(Path(out))
-        record = Path(out).with_suffix(".toml")  # the resolved configuration the training writes
-        if config is not None and record.resolve() == Path(config).resolve():
-            raise D3LVOInputError(config, f"is where --out {out} writes its training's resolved configuration: "
-                                          "name the checkpoint otherwise (e.g. --out "
-                                          f"{Path(out).with_name(Path(out).stem + '_run.pt')})")
         continues = resume is not None and Path(out).resolve() == Path(resume).resolve()
         if not continues:  # a new training (or one resumed into another file) would overwrite an earlier one
             old = [p for p in (Path(out), best_path(out)) if p.is_file()]
@@ -249,6 +244,11 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
     if rank0 and resume is None:
         from models.train_config import write_train_config
 
+        record = Path(out).with_suffix(".toml")  # the resolved configuration, beside the checkpoint
+        if config is not None and record.resolve() == Path(config).resolve():
+            raise D3LVOInputError(config, f"is where --out {out} writes its training's resolved configuration: "
+                                          "name the checkpoint otherwise (e.g. --out "
+                                          f"{Path(out).with_name(Path(out).stem + '_run.pt')})")
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         console.print(f"configuration in {write_train_config(Path(out).with_suffix('.toml'), cfg, tc)} "
                       "(--config repeats it)", highlight=False)
