@@ -40,7 +40,7 @@ def demo_command(
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.synth.generator import SynthConfig, check_config, generate
-    from d3lvo_deploy.bundled import find_real_frames
+    from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
 
     from .eval_cmd import _fmt, report_table
     from .run_cmd import latency_table, resolve_model_dir
@@ -107,7 +107,8 @@ def demo_command(
                   "(docs/evaluation.md compares it with LiDAR-only odometry). No ground truth "
                   "exists for these frames, so no accuracy is claimed"
                   + ("; the bundled model was trained on synthetic data only and is not meant for real KITTI "
-                     "accuracy." if onnx is None else "."), highlight=False)
+                     "accuracy." if Path(model_dir).resolve() == bundled_model_dir().resolve() else "."),
+                  highlight=False)
         console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)
     size = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {size:.0f} MB "

@@ -169,9 +169,18 @@ def _apply_config(ctx: typer.Context, opts: dict, config: Path) -> dict:
         raise D3LVOInputError(config, f"unknown option {unknown[0]!r} in [run] (known: {', '.join(RUN_KEYS)})")
     given = lambda name: given_on_command_line(ctx, name)  # noqa: E731
     hints = typing.get_type_hints(inspect.unwrap(run_command))
+    named = next((opts[k] for k in ("path", "seq_dir") if given(k)), None)
+    if given("kitti_root") and opts.get("sequence"):
+        named = Path(opts["kitti_root"]) / "sequences" / str(opts["sequence"])
+    elif given("kitti_root"):
+        named = Path(opts["kitti_root"])
+    recorded = table.get("path")
+    other = named is not None and not (isinstance(recorded, str) and Path(named).resolve() == Path(recorded).resolve())
     for k, v in table.items():
-        if (k in RECORDING_KEYS or k == "path") and (given("path") or given("seq_dir")):
-            continue  # another recording
+        if k == "path" and named is not None:
+            continue  # the recording named on the command line
+        if k in RECORDING_KEYS and other:
+            continue  # another recording's own format, topics, calibration and ground truth
         if not given(k):
             opts[k] = _config_value(config, k, v, hints[k])
     _check_model(config, opts)
@@ -338,6 +347,11 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
                   classical_beside=classical_beside)
     if folder is not None:
         folder.create()
+        if overwrite:  # an earlier run's outputs are not this run's, whether it finishes or not
+            from d3lvo_deploy.results import LATENCY, METRICS
+
+            for name in (METRICS, LATENCY):
+                (folder.path / name).unlink(missing_ok=True)
     try:
         _write_config(record_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx),
                       engine_name, seq, plan)
@@ -484,8 +498,6 @@ def _finish(seq, folder, out_path: Path, fmt: str, start: int, end: int | None, 
     if folder is not None:
         if res is not None:
             written.append(folder.write_json(METRICS, res.to_dict()))
-        else:  # an earlier run's scores (--overwrite) are not this run's
-            (folder.path / METRICS).unlink(missing_ok=True)
         written.append(folder.path / "config.toml")
         if plot is not None:
             written.append(plot)

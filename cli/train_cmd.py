@@ -196,7 +196,7 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
             raise D3LVOInputError(d, f"has {len(s)} frame: training and validation need pairs, two frames at least")
     if int(os.environ.get("RANK", "0")) == 0:  # the rank that writes the checkpoints
         _check_out(Path(out))
-        continues = resume is not None and Path(out).resolve() == Path(resume).resolve()
+        continues = resume is not None and Path(out).exists() and os.path.samefile(out, resume)
         if not continues:  # a new training (or one resumed into another file) would overwrite an earlier one
             old = [p for p in (Path(out), best_path(out)) if p.is_file()]
             if old:
@@ -242,10 +242,12 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
             raise D3LVOInputError(None, "--precision fp16 trains on a CUDA GPU (its gradient scaler); use bf16 on the CPU")
     rank0 = int(os.environ.get("RANK", "0")) == 0
     if rank0 and resume is None:
-        from models.train_config import write_train_config
+        from models.train_config import RECORD_HEADER, write_train_config
 
         record = Path(out).with_suffix(".toml")  # the resolved configuration, beside the checkpoint
-        if config is not None and record.resolve() == Path(config).resolve():
+        # a hand-written --config there would be replaced; one a training wrote is rewritten as it repeats
+        if (config is not None and record.exists() and os.path.samefile(record, config)
+                and not Path(config).read_text(errors="replace").startswith(RECORD_HEADER)):
             raise D3LVOInputError(config, f"is where --out {out} writes its training's resolved configuration: "
                                           "name the checkpoint otherwise (e.g. --out "
                                           f"{Path(out).with_name(Path(out).stem + '_run.pt')})")

@@ -98,6 +98,10 @@ def model_config(path: Path | None, table: dict, **cli) -> D3LVOConfig:
         raise D3LVOInputError(path, f"[model] {e}") from None
 
 
+# the first line of every configuration a training writes (`write_train_config`)
+RECORD_HEADER = "# d3lvo train --config THIS_FILE repeats this training (--resume to continue it)\n"
+
+
 def write_train_config(path: Path, cfg: D3LVOConfig, tc) -> Path:
     """The resolved configuration of a training run, in the file format `--config` reads."""
     train = {k: v for k, v in asdict(tc).items() if k not in ("augment", "loss")}
@@ -110,5 +114,5 @@ def write_train_config(path: Path, cfg: D3LVOConfig, tc) -> Path:
         if train.get(key):
             train[key] = absolute(train[key])
     text = to_toml({"model": cfg.to_dict(), "train": train, "loss": asdict(tc.loss), "augment": asdict(tc.augment)})
-    path.write_text("# d3lvo train --config THIS_FILE repeats this training (--resume to continue it)\n" + text)
+    path.write_text(RECORD_HEADER + text)
     return path

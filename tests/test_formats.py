@@ -616,6 +616,13 @@ def test_a_config_repeated_on_another_recording_scores_it_against_its_own_ground
                             "--json"])
     want = json.loads(e.stdout)["ate"]
     assert json.loads((tmp_path / "r" / "metrics.json").read_text())["ate"] == pytest.approx(want, abs=1e-9)
+    # the config's own recording named on the command line keeps the config's ground truth
+    r = runner.invoke(app, ["run", str(TINY), "--config", str(cfg), "--out-dir", str(tmp_path / "own")])
+    assert r.exit_code == 0, r.output
+    e = runner.invoke(app, ["eval", "--gt", str(tmp_path / "wrong_gt.txt"), "--est", str(tmp_path / "own" / "poses.txt"),
+                            "--json"])
+    assert json.loads((tmp_path / "own" / "metrics.json").read_text())["ate"] == pytest.approx(
+        json.loads(e.stdout)["ate"], abs=1e-9)
     (tmp_path / "other" / "poses.txt").unlink()
     r = runner.invoke(app, ["run", str(tmp_path / "other"), "--method", "direct", "--out-dir", str(tmp_path / "r"),
                             "--overwrite"])

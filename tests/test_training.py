@@ -208,6 +208,12 @@ def test_training_leaves_the_users_files_alone(small_synth, tmp_path):
     r = CliRunner().invoke(app, ["train", "--config", str(mine), "--out", str(tmp_path / "exp.pt")])
     assert r.exit_code == 1 and "is where --out" in r.output and "resolved configuration" in r.output, r.output
     assert mine.read_text() == text and not (tmp_path / "exp.pt").exists()
+    from models.train_config import RECORD_HEADER
+
+    written = tmp_path / "rec.toml"  # a configuration a training wrote: --config repeats it in place
+    written.write_text(RECORD_HEADER + text.replace("steps = 2", "steps = 1"))
+    r = CliRunner().invoke(app, ["train", "--config", str(written), "--out", str(tmp_path / "rec.pt")])
+    assert r.exit_code == 0 and (tmp_path / "rec.pt").is_file(), r.output
     other = tmp_path / "other.pt"
     other.write_bytes(b"another training's weights")
     from conftest import make_checkpoint
