@@ -12,7 +12,7 @@ from rich.table import Table
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors, out
+from .common import console, friendly_errors, note_oversubscribed, out
 
 
 def _bench_frames(tmp: Path) -> Path:
@@ -145,6 +145,7 @@ def bench_command(
 
     if runs < 1:
         raise D3LVOInputError(None, "--runs must be at least 1")
+    note_oversubscribed(threads)
     if prepare_threads not in (0, 1, 2):
         raise D3LVOInputError(None, f"--prepare-threads must be 1 or 2, not {prepare_threads}")
     if (height is None) != (width is None):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 from typing import Callable, TypeVar
 
 import typer
@@ -27,6 +28,15 @@ def lead(word: str, style: str, text: str = "") -> Text:
 
 console = _console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
 out = _console(stderr=False)
+
+def note_oversubscribed(threads: int) -> None:
+    """More threads than cores only take turns on them: each frame slower, not faster."""
+    cores = os.cpu_count() or 1
+    if threads > cores:
+        console.print(lead("note", "yellow", f" --threads {threads} is more than this machine's {cores} cores: "
+                                             "the threads take turns on them, and each frame takes longer"),
+                      highlight=False)
+
 
 F = TypeVar("F", bound=Callable)
 

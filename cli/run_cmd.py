@@ -16,7 +16,7 @@ from rich.table import Table
 
 from d3lvo_deploy.errors import D3LVOInputError
 
-from .common import console, friendly_errors, given_on_command_line, lead, out
+from .common import console, friendly_errors, given_on_command_line, lead, note_oversubscribed, out
 from .progress import frame_progress
 
 
@@ -156,6 +156,7 @@ def run_command(
     opts = {k: v for k, v in locals().items() if k != "ctx"}
     if config is not None:
         opts = _apply_config(ctx, opts, config)
+    note_oversubscribed(opts["threads"])
     _run(**opts)
 
 

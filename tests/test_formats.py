@@ -638,3 +638,13 @@ def test_a_config_file_that_is_not_utf8_or_has_a_non_table_model_is_one_line(tmp
     cfg.write_text(f'model = "x"\n[run]\npath = "{TINY}"\nmethod = "direct"\n')  # no [model] table: nothing to check
     r = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "p.txt")])
     assert r.exit_code == 0, r.output
+
+
+def test_more_threads_than_cores_is_noted(tmp_path):
+    import os
+
+    many = (os.cpu_count() or 1) + 1
+    r = runner.invoke(app, ["run", str(TINY), "--method", "direct", "--out", str(tmp_path / "p.txt"), "--threads", str(many)])
+    assert r.exit_code == 0 and f"--threads {many} is more than this machine's" in r.output, r.output
+    r = runner.invoke(app, ["run", str(TINY), "--method", "direct", "--out", str(tmp_path / "q.txt"), "--threads", "1"])
+    assert r.exit_code == 0 and "more than this machine's" not in r.output, r.output
