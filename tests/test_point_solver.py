@@ -762,7 +762,9 @@ def scan_judge_model(points_model, tmp_path_factory):
     from models.d3lvo import D3LVO
 
     def build(d):
-        solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0)
+        # two pyramid levels: the choice between the poses is what is tested; each level is graph to export
+        solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0,
+                      pt_iters=(6, 6))
         fixture = build_model(load_checkpoint(points_model[0]))
         model = D3LVO(replace(fixture.cfg, **solver)).eval()
         model.load_state_dict(fixture.state_dict())
@@ -968,7 +970,8 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
 
     fixture = build_model(load_checkpoint(points_model[0]))
     # without the restart's scan check: the choice between the weighted and the classical pose alone
-    model = D3LVO(replace(fixture.cfg, pt_restart_depth=0.0)).eval()
+    # two pyramid levels: the choice between the poses is what is tested; each level is graph to export
+    model = D3LVO(replace(fixture.cfg, pt_restart_depth=0.0, pt_iters=(6, 6))).eval()
     model.load_state_dict(fixture.state_dict())
     torch.manual_seed(1)
     with torch.no_grad():
