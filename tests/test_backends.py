@@ -284,19 +284,18 @@ def test_onnxruntime_keeps_its_optimised_graphs(small_model, small_synth, tmp_pa
 
 
 @needs_openvino
-def test_every_stage_runs_on_the_threads_asked_for():
+def test_every_stage_runs_on_the_threads_asked_for(scan_judge_model):
     """--threads is every stage's thread count on both engines, the point solver's flow+pose too
     (two threads measured faster than one for that stage on OpenVINO on an AMD EPYC,
-    docs/performance.md). With the classical solve beside (the bundled model on two threads), that
-    solve runs on one thread (unpinned on OpenVINO, so that it takes the core the others leave) and
-    completion (and on onnxruntime encoder) on one fewer."""
-    from d3lvo_deploy.bundled import bundled_model_dir
-
+    docs/performance.md). With the classical solve beside (a model with that stage, as the bundled
+    one, on two threads), that solve runs on one thread (unpinned on OpenVINO, so that it takes the
+    core the others leave) and completion (and on onnxruntime encoder) on one fewer."""
+    model_dir = scan_judge_model[1]
     want = {True: {"completion": (1, 1), "encoder": (1, 2), "classical": (1, 1), "flowpose_weighted": (2, 2)},
             False: {"completion": (2, 2), "encoder": (2, 2), "flowpose": (2, 2)}}  # (onnxruntime, OpenVINO)
     for beside, threads in want.items():
-        ort_m = StageModel(bundled_model_dir(), SessionConfig(backend="onnxruntime", threads=2, classical_beside=beside))
-        ov_m = StageModel(bundled_model_dir(), SessionConfig(backend="openvino", threads=2, classical_beside=beside))
+        ort_m = StageModel(model_dir, SessionConfig(backend="onnxruntime", threads=2, classical_beside=beside))
+        ov_m = StageModel(model_dir, SessionConfig(backend="openvino", threads=2, classical_beside=beside))
         assert ov_m.point_solver and set(ov_m.sessions) == set(ort_m.sessions) == set(threads)
         for name, (n_ort, n_ov) in threads.items():
             assert int(ov_m.sessions[name].compiled.get_property("INFERENCE_NUM_THREADS")) == n_ov, name

@@ -749,36 +749,6 @@ def test_restart_depth_graph_takes_frame_ts_scan_and_equals_torch(points_model, 
     assert np.abs(torch_traj[:, :3, 3] - without[:, :3, 3]).max() > 1e-5
 
 
-@pytest.fixture(scope="module")
-def scan_judge_model(points_model, tmp_path_factory):
-    """(checkpoint, ONNX folder): `points_model` with `pt_select_scan_pass` 1 and pt_select 0.999
-    (the photometric test never passes), without the restart, so that frame t's scan is read for
-    the choice between the weighted and the classical pose alone; its last confidence layer
-    redrawn at std 3, as in the rotation gate's test: an untrained confidence is the same on every
-    point, and the two solves then agree. Its classical solve is a stage of its own."""
-    from conftest import built_once
-    from export.onnx_export import ExportConfig, export_checkpoint
-    from models.checkpoint import build_model, load_checkpoint, save_checkpoint
-    from models.d3lvo import D3LVO
-
-    def build(d):
-        # two pyramid levels: the choice between the poses is what is tested; each level is graph to export
-        solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0,
-                      pt_iters=(6, 6))
-        fixture = build_model(load_checkpoint(points_model[0]))
-        model = D3LVO(replace(fixture.cfg, **solver)).eval()
-        model.load_state_dict(fixture.state_dict())
-        torch.manual_seed(1)
-        with torch.no_grad():
-            model.point_pose.moving.net[-1].weight.normal_(std=3.0)
-            model.point_pose.moving.net[-1].bias.zero_()
-        save_checkpoint(d / "ck.pt", model, model.cfg, step=0)
-        export_checkpoint(d / "ck.pt", ExportConfig(out=d / "o"))
-
-    d = built_once(tmp_path_factory, "scan_judge_model", build)
-    return d / "ck.pt", d / "o"
-
-
 def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(scan_judge_model, small_synth, tmp_path):
     """With `pt_select_scan_pass` (`scan_judge_model`), the flow+pose graphs take frame t's scan
     and the classical solve does not; the torch-free runtime, which solves the classical mode
