@@ -363,7 +363,10 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if folder is not None and fresh:
         from d3lvo_deploy.results import link_latest
 
-        link_latest(folder.path)
+        latest = folder.path.parent / "latest"
+        if not link_latest(folder.path) and latest.exists() and not latest.is_symlink():
+            console.print(lead("note", "yellow", f" {latest} is not the link d3lvo keeps to the newest run (a "
+                                                 "folder or file of its own): left as it is"), highlight=False)
     if plan.finished:
         console.print(f"{out_path} already holds all {plan.n} poses of frames {plan.rc.start}..{plan.rc.end - 1}: "
                       "nothing to run (--overwrite starts over)", highlight=False)

@@ -78,9 +78,12 @@ def remove_if_empty(folder: Path) -> None:
         pass
 
 
-def link_latest(folder: Path) -> None:
-    """`latest` beside the folder, a relative link, replaced atomically."""
+def link_latest(folder: Path) -> bool:
+    """`latest` beside the folder, a relative link, replaced atomically; False (and nothing
+    touched) where `latest` is a real folder or file of the user's, or links cannot be made."""
     link = folder.parent / "latest"
+    if link.exists() and not link.is_symlink():
+        return False
     tmp = folder.parent / f".latest-{os.getpid()}"
     try:
         if tmp.is_symlink():
@@ -88,7 +91,10 @@ def link_latest(folder: Path) -> None:
         tmp.symlink_to(folder.name)
         os.replace(tmp, link)
     except OSError:  # a file system without links: the folder itself is what matters
-        pass
+        if tmp.is_symlink():
+            tmp.unlink()
+        return False
+    return True
 
 
 def _toml_value(v) -> str:

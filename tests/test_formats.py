@@ -648,3 +648,17 @@ def test_more_threads_than_cores_is_noted(tmp_path):
     assert r.exit_code == 0 and f"--threads {many} is more than this machine's" in r.output, r.output
     r = runner.invoke(app, ["run", str(TINY), "--method", "direct", "--out", str(tmp_path / "q.txt"), "--threads", "1"])
     assert r.exit_code == 0 and "more than this machine's" not in r.output, r.output
+
+
+def test_a_latest_folder_of_the_users_is_left_as_it_is(tmp_path, monkeypatch):
+    """`results/latest` is the link to the newest run; where it is a folder of the user's, a run
+    leaves it (and no stray link beside it) and says so."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "results" / "latest").mkdir(parents=True)
+    (tmp_path / "results" / "latest" / "mine.txt").write_text("mine")
+    r = runner.invoke(app, ["run", str(TINY), "--method", "direct"])
+    assert r.exit_code == 0 and "is not the link d3lvo keeps to the newest run" in r.output, r.output
+    assert (tmp_path / "results" / "latest" / "mine.txt").read_text() == "mine"
+    assert not [p for p in (tmp_path / "results").iterdir() if p.name.startswith(".latest")]
+    r = runner.invoke(app, ["run", str(TINY), "--method", "direct", "--out-dir", str(tmp_path / "results" / "x")])
+    assert r.exit_code == 0 and "not the link" not in r.output  # --out-dir: no link, no note
