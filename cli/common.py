@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import os
 from typing import Callable, TypeVar
 
 import typer
@@ -29,12 +28,16 @@ def lead(word: str, style: str, text: str = "") -> Text:
 console = _console(stderr=True)  # tables and progress go to stderr so --json stdout stays parseable
 out = _console(stderr=False)
 
+
 def note_oversubscribed(threads: int) -> None:
-    """More threads than cores only take turns on them: each frame slower, not faster."""
-    cores = os.cpu_count() or 1
+    """More threads than cores only take turns on them: each frame slower, not faster. The cores
+    are those the engines count by default (`backends.usable_cores`)."""
+    from d3lvo_deploy.backends import usable_cores
+
+    cores = usable_cores()
     if threads > cores:
-        console.print(lead("note", "yellow", f" --threads {threads} is more than this machine's {cores} cores: "
-                                             "the threads take turns on them, and each frame takes longer"),
+        console.print(lead("note", "yellow", f" --threads {threads} is more than the {cores} cores this process "
+                                             "may use: the threads take turns on them, and each frame takes longer"),
                       highlight=False)
 
 

@@ -58,7 +58,6 @@ RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", 
             "pipeline", "classical_beside")
 
 
-# what a results folder's config says of its recording alone, not taken for another one
 # what belongs to the recording a config repeats: another recording given on the command line
 # brings its own (its format guessed again, its topics, calibration and ground truth found beside it)
 RECORDING_KEYS = ("fmt", "image_topic", "cloud_topic", "info_topic", "max_dt", "calib", "gt")

@@ -252,7 +252,7 @@ def _train(data, out, config, val, steps, resume, stop_at, mode, completion, pre
                                           "name the checkpoint otherwise (e.g. --out "
                                           f"{Path(out).with_name(Path(out).stem + '_run.pt')})")
         Path(out).parent.mkdir(parents=True, exist_ok=True)
-        console.print(f"configuration in {write_train_config(Path(out).with_suffix('.toml'), cfg, tc)} "
+        console.print(f"configuration in {write_train_config(record, cfg, tc)} "
                       "(--config repeats it)", highlight=False)
     with frame_progress() as bar:
         task = bar.add_task("train", total=steps, rate="", visible=rank0)

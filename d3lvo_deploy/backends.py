@@ -51,7 +51,7 @@ def _ort():
     return onnxruntime
 
 
-def _usable_cores(topology: str = "/sys/devices/system/cpu") -> int:
+def usable_cores(topology: str = "/sys/devices/system/cpu") -> int:
     """The physical cores this process may run on (a taskset's share, not the machine's): what
     the engines take by default, one thread per core, whatever its hyperthreads."""
     try:
@@ -115,7 +115,7 @@ class SessionConfig:
     @property
     def threads_taken(self) -> int:
         """The threads the engines take: `engine_threads`, else one per physical core."""
-        return self.engine_threads or _usable_cores()
+        return self.engine_threads or usable_cores()
 
     @property
     def preparing_threads(self) -> int:

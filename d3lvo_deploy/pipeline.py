@@ -227,11 +227,9 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
     if rc.rerun_path is not None:
-        try:
-            Path(rc.rerun_path).parent.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise D3LVOInputError(Path(rc.rerun_path).parent, f"cannot create the recording's folder ({e.strerror})") \
-                from None
+        from .results import make_output_folder
+
+        make_output_folder(Path(rc.rerun_path).parent, "--rerun", "the recording")
     n = end - rc.start
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
         warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "

@@ -17,7 +17,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.metrics import auroc
@@ -73,11 +72,12 @@ def moving_cells(model: D3LVO, seq: str, pairs: int = 48) -> dict[str, np.ndarra
         cells["moving"].append(moving)
         cells["visible"].append(pooled[0] / np.maximum(pooled[1], 1e-6))
         cells["inside"].append(cv2.distanceTransform(moving.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+        # every pixel of the view as a point at depth 1, read by the solver's own reading
         h, w = b["moving"].shape[-2:]
         v, u = torch.meshgrid(torch.arange(h, dtype=c.dtype), torch.arange(w, dtype=c.dtype), indexing="ij")
-        grid = torch.stack([2.0 * u / s / (c.shape[-1] - 1) - 1.0, 2.0 * v / s / (c.shape[-2] - 1) - 1.0], -1)
-        pixel = F.grid_sample(c, grid[None], mode="bilinear", padding_mode="border", align_corners=True)
-        cells["pixel_score"].append(-pixel[0, 0].numpy())
+        at_pixels = torch.stack([(u - float(cx)) / float(fx), (v - float(cy)) / float(fy), torch.ones_like(u)], -1)
+        pixel = model.point_pose.point_confidence(c, at_pixels.reshape(1, -1, 3), b["K"].to(c.dtype))
+        cells["pixel_score"].append(-pixel[0].numpy())
         cells["pixel_moving"].append(b["moving"][0, 0].numpy() > 0.5)
     return {k: np.concatenate([a.ravel() for a in v]) for k, v in cells.items()}
 

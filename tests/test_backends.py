@@ -436,7 +436,7 @@ def test_the_pipelined_split_counts_physical_cores(tmp_path, monkeypatch):
         (tmp_path / f"cpu{cpu}" / "topology").mkdir(parents=True)
         (tmp_path / f"cpu{cpu}" / "topology" / "thread_siblings_list").write_text(siblings + "\n")
     monkeypatch.setattr(backends.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
-    assert backends._usable_cores(str(tmp_path)) == 2
-    monkeypatch.setattr(backends, "_usable_cores", lambda: 2)
+    assert backends.usable_cores(str(tmp_path)) == 2
+    monkeypatch.setattr(backends, "usable_cores", lambda: 2)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert SessionConfig().pipelined().for_stage("flowpose").engine_threads == 1
