@@ -19,6 +19,9 @@ def baseline_line(m: dict) -> str:
              for k in sorted(m) if k.startswith("flow_epe_") and not k.endswith("_zero")]
     parts.append(f"rotation {m['rot_err_deg']:.4f} deg (no rotation {m['rot_err_deg_zero']:.4f})")
     parts.append(f"translation {m['trans_err_m']:.4f} m (no motion {m['trans_err_m_zero']:.4f})")
+    # on drives with motion masks: how well low confidence ranks moving cells (uniform scores 0.5)
+    parts += [f"{what} AUROC {k.rsplit('_', 1)[-1]} {m[k]:.4f} (uniform 0.5)"
+              for what in ("moving", "shadow") for k in sorted(m) if k.startswith(f"{what}_auroc_")]
     return ", ".join(parts)
 
 

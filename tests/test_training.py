@@ -603,3 +603,17 @@ train_only = ["point_pose.moving"]
     f.write_text(f.read_text().replace('["point_pose.moving"]', '["confidence"]').replace("a.pt", "b.pt"))
     r = CliRunner().invoke(app, ["train", "--config", str(f)])
     assert r.exit_code == 1 and "names no parameter" in r.output and "Traceback" not in r.output, r.output
+
+
+def test_validation_line_shows_each_baseline_and_the_confidences_auroc():
+    """What `d3lvo train` prints per validation drive: every figure beside what it must beat, the
+    confidence's AUROC per level beside a uniform confidence's 0.5, only where the drive has masks."""
+    from cli.train_cmd import baseline_line
+
+    m = {"flow_epe_l1": 1.9023, "flow_epe_l1_zero": 6.2091, "rot_err_deg": 0.0951, "rot_err_deg_zero": 0.7486,
+         "trans_err_m": 0.0153, "trans_err_m_zero": 0.9233}
+    line = baseline_line(m)
+    assert "flow EPE l1 1.902 (zero flow 6.209)" in line and "rotation 0.0951 deg (no rotation 0.7486)" in line
+    assert "AUROC" not in line  # a static drive has no motion masks
+    line = baseline_line({**m, "moving_auroc_l1": 0.94736, "shadow_auroc_l1": 0.4866})
+    assert "moving AUROC l1 0.9474 (uniform 0.5)" in line and "shadow AUROC l1 0.4866 (uniform 0.5)" in line
