@@ -46,7 +46,7 @@ def test_confidence_separates_movers_and_beats_uniform_weights(busy_street):
     assert 0.05 < moving.mean() < 0.6  # the clip has movers, and a street to track
     a = auroc(np.concatenate(scores), moving)
     print(f"AUROC of low confidence for moving cells: {a:.3f} (uniform confidence: 0.5)")
-    # measured 0.838 with the bundled model (its confidence reads motion evidence only; a uniform
+    # measured 0.928 with the bundled model (its confidence reads motion evidence only; a uniform
     # confidence scores 0.5): the margin stated for it is 0.3 above uniform
     assert a > 0.8
 
@@ -56,9 +56,9 @@ def test_confidence_separates_movers_and_beats_uniform_weights(busy_street):
     err = lambda P: float(np.linalg.norm(relatives(np.array(P))[:, :3, 3] - gt, axis=1).mean())  # noqa: E731
     print(f"mean per-pair translation error: network {err(net):.4f} m, classical mode {err(direct):.4f} m, "
           f"no motion {float(np.linalg.norm(gt, axis=1).mean()):.4f} m")
-    # a clip this busy is hard for both (measured: 0.20 against 0.22 m); the margin stated for the
-    # confidence is the AUROC's above, the pose must come out ahead
-    assert err(net) < err(direct)
+    # the classical mode follows the vehicles on this busy clip (measured: 0.020 m for the network
+    # against 0.219 m): the margin stated for the pose is half the classical mode's error
+    assert err(net) < 0.5 * err(direct)
 
 
 def test_real_frames_end_near_lidar_odometry():
