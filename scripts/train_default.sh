@@ -445,10 +445,11 @@ done
 
 # Last, the confidence net continued on denser traffic (docs/model-card.md): six more drives of 120
 # frames at 9-12 vehicles per 100 m (seeds 540-545, KITTI 00-08 motion at starts no training or
-# held-out drive uses; three replay validation drives' motion in other worlds: seeds 601, 603, 617), then, everything else kept as above (scripts/confidence.toml), 1,200 steps of
-# cross-entropy against the motion masks at lr 3e-4 on the twenty drives from the shipped weights
-# above (checkpoints/confidence_solver_step1000.pt) and 600 steps of the pose loss through the
-# solver at lr 3e-4, one thread, ~0.9 and ~1.8 s per step; checkpoints/dense_step1200.pt and
+# held-out drive uses; three replay validation drives' motion in other worlds: seeds 601, 603 and
+# 617), then, everything else kept as above (scripts/confidence.toml), 1,200 steps of cross-entropy
+# against the motion masks at lr 3e-4 on the twenty drives from the weights shipped above
+# (checkpoints/confidence_solver_step1000.pt) and 600 steps of the pose loss through the solver at
+# lr 3e-4, one thread, ~0.9 and ~1.8 s per step; checkpoints/dense_step1200.pt and
 # checkpoints/dense_solver_step600.pt are their full states. Chosen on the validation drives (the
 # confidence's AUROC and t_rel), shipped with the settings default.pt holds, and scored once on
 # the held-out drives.
