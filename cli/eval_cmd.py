@@ -82,6 +82,12 @@ def eval_command(
         if unpaired:
             console.print(lead("note", "yellow", f" {e}: {', '.join(unpaired)} not scored: no file of that name "
                                                  f"in {gt}"), highlight=False)
+        if gt.is_dir():  # scored on fewer sequences than the ground truth holds: said, as methods compare
+            missing = sorted(f.name for f in gt.glob("*.txt") if not (e / f.name).is_file())
+            if missing:
+                more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+                console.print(lead("note", "yellow", f" {e}: no estimate for {', '.join(missing[:5])}{more} of {gt}: "
+                                                     "those sequences are not scored"), highlight=False)
         reports[label] = evaluate_files(pairs, align=align)
     many = len(reports) > 1
     for label, report in reports.items():

@@ -14,6 +14,8 @@ def plot_path(path: Path) -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     path = Path(path)
+    if not path.name:  # "" or a path ending in a folder: nothing to name the picture after
+        raise D3LVOInputError(None, "--plot names no file: give the picture's path, e.g. traj.png")
     if not path.suffix:
         return path.with_name(path.name + ".png")
     kinds = sorted(FigureCanvasAgg.get_supported_filetypes())

@@ -49,6 +49,24 @@ def test_eval_folders(tmp_path):
     assert data["segments"] == sum(s["segments"] for s in data["sequences"])
 
 
+def test_eval_folders_say_which_ground_truth_has_no_estimate(tmp_path):
+    """Two methods compared on folders must be compared on the same sequences: a ground-truth file
+    without an estimate of its name is named, not silently left out; --plot "" is one error."""
+    gt_dir, est_dir = tmp_path / "gt", tmp_path / "est"
+    gt_dir.mkdir(), est_dir.mkdir()
+    for name in ("00.txt", "04.txt"):
+        write_poses(gt_dir / name, _straight(50, 1.0))
+    write_poses(est_dir / "00.txt", _straight(50, 1.1))
+    r = runner.invoke(app, ["eval", "--gt", str(gt_dir), "--est", str(est_dir)])
+    assert r.exit_code == 0 and "no estimate for 04.txt" in r.output and "not scored" in r.output, r.output
+    write_poses(est_dir / "04.txt", _straight(50, 1.1))
+    r = runner.invoke(app, ["eval", "--gt", str(gt_dir), "--est", str(est_dir)])
+    assert r.exit_code == 0 and "no estimate" not in r.output, r.output
+    pytest.importorskip("matplotlib")
+    r = runner.invoke(app, ["eval", "--gt", str(gt_dir / "00.txt"), "--est", str(est_dir / "00.txt"), "--plot", ""])
+    assert r.exit_code == 1 and "--plot names no file" in r.output and "Traceback" not in r.output, r.output
+
+
 def test_eval_table(tmp_path):
     gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
     write_poses(gt, _straight(50, 1.0))

@@ -194,12 +194,13 @@ def test_synthetic_drive_is_plausible():
     (dict(traffic=float("inf")), "--traffic must be 0 or more vehicles per 100 m, not inf"),
     (dict(motion_start=50), "--motion-start is the first frame of --motion-from's trajectory"),
     (dict(width=40000, height=40000), "--size 40000x40000 is too large: at most 4096 a side"),
+    (dict(frames=99_999_999_999), "--frames 99999999999 is too many: at most 100000"),
 ])
 def test_settings_that_cannot_render_are_refused_before_any_folder(tmp_path, cfg, words):
     from d3lvo_deploy.errors import D3LVOInputError
 
     with pytest.raises(D3LVOInputError, match=re.escape(words)):
-        generate(tmp_path / "s", SynthConfig(frames=2, **{"width": 320, "height": 96, **cfg}))
+        generate(tmp_path / "s", SynthConfig(**{"frames": 2, "width": 320, "height": 96, **cfg}))
     assert not (tmp_path / "s").exists()
 
 
@@ -222,3 +223,31 @@ def test_overwrite_with_fewer_frames_leaves_none_of_the_old_ones(tmp_path):
             generate(tmp_path / "k", SynthConfig(frames=2, seed=1, width=320, height=96), resume=resume)
     assert (tmp_path / "k" / "image_2" / "000009.png").read_bytes() == b"real data"
     assert sorted(p.name for p in (tmp_path / "k").iterdir()) == ["image_2"]
+
+
+def test_folders_synth_cannot_own_are_refused_and_the_user_files_kept(tmp_path, monkeypatch):
+    """An empty --out (the working directory), a folder with a trajectory or calibration but no
+    synth.json (someone's sequence), a synth.json that is damaged or a folder: one error each,
+    before anything is written; --overwrite renders a damaged one's folder again."""
+    monkeypatch.chdir(tmp_path)
+    cfg = SynthConfig(frames=2, seed=1, width=320, height=96)
+    with pytest.raises(D3LVOInputError, match="--out names no folder"):
+        generate("", cfg)
+    assert list(tmp_path.iterdir()) == []
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(D3LVOInputError, match=r"holds poses.txt that d3lvo synth did not write"):
+        generate(theirs, cfg)
+    assert sorted(p.name for p in theirs.iterdir()) == ["poses.txt"]
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    for text in ("{bad", "[1, 2]", "\xff"):
+        (damaged / "synth.json").write_text(text)
+        with pytest.raises(D3LVOInputError, match=r"synth.json: is not the settings file d3lvo synth writes"):
+            generate(damaged, cfg)
+    generate(damaged, cfg, resume=False)  # --overwrite
+    assert len(KittiSequence.open(damaged)) == 2
+    (tmp_path / "dir" / "synth.json").mkdir(parents=True)
+    with pytest.raises(D3LVOInputError, match=r"synth.json: is not a file"):
+        generate(tmp_path / "dir", cfg, resume=False)

@@ -173,6 +173,9 @@ def check_config(cfg: SynthConfig) -> None:
     """The settings' own errors, before anything is rendered or a progress bar drawn."""
     if cfg.frames < 2:
         raise D3LVOInputError(None, "--frames must be at least 2")
+    if cfg.frames > MAX_FRAMES:  # the motion and its buffers are made for every frame up front
+        raise D3LVOInputError(None, f"--frames {cfg.frames} is too many: at most {MAX_FRAMES} (render a longer drive "
+                                    "as several)")
     if cfg.width < 64 or cfg.height < 32:
         raise D3LVOInputError(None, f"--size {cfg.width}x{cfg.height} is too small")
     if cfg.width > 4096 or cfg.height > 4096:  # a frame's float buffers would take gigabytes
@@ -187,6 +190,9 @@ def check_config(cfg: SynthConfig) -> None:
 
 
 FRAME_FOLDERS = ("image_2", "velodyne", "depth_2", "motion_2", "flow_2", "shadow_2")
+# what a render writes beside its frames: in a folder without synth.json they are someone else's
+SEQUENCE_FILES = ("poses.txt", "calib.txt", "times.txt")
+MAX_FRAMES = 100_000  # KITTI's longest sequence has 4,661
 
 
 def _frame_folders(cfg: SynthConfig) -> tuple[str, ...]:
@@ -213,14 +219,30 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
     any settings with --overwrite (`resume` False). Frames it did not render (no synth.json: a
     real KITTI sequence?) are refused either way: their images would stay beside new poses and
     calibration."""
-    meta_path = Path(out) / "synth.json"
-    if not meta_path.is_file():
+    out = Path(out)
+    if str(out) in ("", "."):  # an empty --out is the working directory, which holds the user's files
+        raise D3LVOInputError(None, "--out names no folder: give the folder to render into")
+    meta_path = out / "synth.json"
+    if not meta_path.exists():
         if any((out / d).is_dir() and any((out / d).iterdir()) for d in FRAME_FOLDERS):
             raise D3LVOInputError(out, "holds frames that d3lvo synth did not render (no synth.json): use an empty or "
                                        "new --out")
+        theirs = [f for f in SEQUENCE_FILES if (out / f).exists()]
+        if theirs:
+            raise D3LVOInputError(out, f"holds {', '.join(theirs)} that d3lvo synth did not write (no synth.json): "
+                                       "use an empty or new --out")
         return
+    if not meta_path.is_file():
+        raise D3LVOInputError(meta_path, "is not a file, where d3lvo synth keeps a render's settings: use another --out")
     if resume:
-        old, new = json.loads(meta_path.read_text()), json.loads(json.dumps(cfg.meta()))
+        try:
+            old = json.loads(meta_path.read_text())
+            if not isinstance(old, dict):
+                raise ValueError
+        except (OSError, ValueError):  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+            raise D3LVOInputError(meta_path, "is not the settings file d3lvo synth writes (unreadable or damaged): "
+                                             "use another --out, or --overwrite to render the folder again") from None
+        new = json.loads(json.dumps(cfg.meta()))
         if old != new:
             key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
