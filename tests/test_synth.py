@@ -226,14 +226,15 @@ def test_overwrite_with_fewer_frames_leaves_none_of_the_old_ones(tmp_path):
 
 
 def test_folders_synth_cannot_own_are_refused_and_the_user_files_kept(tmp_path, monkeypatch):
-    """An empty --out (the working directory), a folder with a trajectory or calibration but no
+    """An empty --out (the working directory, holding the user's files), a folder with a trajectory or calibration but no
     synth.json (someone's sequence), a synth.json that is damaged or a folder: one error each,
     before anything is written; --overwrite renders a damaged one's folder again."""
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.md").write_text("mine")
     cfg = SynthConfig(frames=2, seed=1, width=320, height=96)
-    with pytest.raises(D3LVOInputError, match="--out names no folder"):
+    with pytest.raises(D3LVOInputError, match="--out is the working directory, which holds other files"):
         generate("", cfg)
-    assert list(tmp_path.iterdir()) == []
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.md"]
     theirs = tmp_path / "theirs"
     theirs.mkdir()
     (theirs / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")

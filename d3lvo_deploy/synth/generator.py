@@ -220,10 +220,11 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
     real KITTI sequence?) are refused either way: their images would stay beside new poses and
     calibration."""
     out = Path(out)
-    if str(out) in ("", "."):  # an empty --out is the working directory, which holds the user's files
-        raise D3LVOInputError(None, "--out names no folder: give the folder to render into")
     meta_path = out / "synth.json"
     if not meta_path.exists():
+        if str(out) in ("", ".") and any(out.iterdir()):  # an empty --out: the working directory, the user's files
+            raise D3LVOInputError(None, "--out is the working directory, which holds other files: give a folder to "
+                                        "render into")
         if any((out / d).is_dir() and any((out / d).iterdir()) for d in FRAME_FOLDERS):
             raise D3LVOInputError(out, "holds frames that d3lvo synth did not render (no synth.json): use an empty or "
                                        "new --out")
