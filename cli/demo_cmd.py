@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -117,11 +116,8 @@ def demo_command(
 
 def _rendered(seq_dir: Path, cfg) -> bool:
     """Whether seq_dir already holds this exact drive, every frame written."""
-    meta = seq_dir / "synth.json"
-    if not meta.is_file():
-        return False
-    try:
-        same = json.loads(meta.read_text()) == json.loads(json.dumps(cfg.meta()))  # what the generator writes
-    except (ValueError, OSError):
-        return False  # unreadable: not this drive, rendered again
-    return same and len(list((seq_dir / "image_2").glob("*.png"))) == cfg.frames and (seq_dir / "poses.txt").is_file()
+    from d3lvo_deploy.synth.generator import rendered_settings
+
+    # a synth.json missing or unreadable: not this drive, rendered again
+    return (rendered_settings(seq_dir) == cfg.as_written() and (seq_dir / "poses.txt").is_file()
+            and len(list((seq_dir / "image_2").glob("*.png"))) == cfg.frames)

@@ -8,11 +8,11 @@ INPUT_MODES = ("rgb", "rgb_sparse", "rgb_completion")
 COMPLETIONS = ("learned", "ipbasic")
 
 
-# Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
-# --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 # the point solver's pyrDown levels at most: frame t's image at the coarsest must still hold a
 # gradient and a bilinear sample around every point (a level under ~10 pixels did not)
 MAX_PYRAMID_LEVELS = 5
+# Gauss-Newton settings that have no weights: the same weights can be exported (`d3lvo export
+# --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
                "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained",

@@ -76,6 +76,19 @@ class SynthConfig:
                 del d[k]
         return d
 
+    def as_written(self) -> dict:
+        """`meta` as synth.json reads back (tuples as lists): what a render's file is compared with."""
+        return json.loads(json.dumps(self.meta()))
+
+
+def rendered_settings(folder: str | Path) -> dict | None:
+    """The settings in a render's synth.json; None where it is missing, unreadable or not settings."""
+    try:
+        settings = json.loads((Path(folder) / "synth.json").read_text())
+    except (OSError, ValueError):  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        return None
+    return settings if isinstance(settings, dict) else None
+
 
 def drive_traffic(folder: str | Path) -> float | None:
     """Moving vehicles per 100 m a synthetic drive was rendered with (its synth.json); None for a
@@ -236,14 +249,10 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
     if not meta_path.is_file():
         raise D3LVOInputError(meta_path, "is not a file, where d3lvo synth keeps a render's settings: use another --out")
     if resume:
-        try:
-            old = json.loads(meta_path.read_text())
-            if not isinstance(old, dict):
-                raise ValueError
-        except (OSError, ValueError):  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        old, new = rendered_settings(out), cfg.as_written()
+        if old is None:
             raise D3LVOInputError(meta_path, "is not the settings file d3lvo synth writes (unreadable or damaged): "
-                                             "use another --out, or --overwrite to render the folder again") from None
-        new = json.loads(json.dumps(cfg.meta()))
+                                             "use another --out, or --overwrite to render the folder again")
         if old != new:
             key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
