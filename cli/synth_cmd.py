@@ -44,7 +44,8 @@ def synth_command(
     from d3lvo_deploy.extras import require
 
     require("embreex", what="d3lvo synth")
-    from d3lvo_deploy.synth.generator import SynthConfig, check_config, check_output, generate, make_poses
+    from d3lvo_deploy.synth.generator import (SynthConfig, check_config, check_output, frames_to_render, generate,
+                                              make_poses)
 
     width, height = parse_size(size)
     if motion_from is not None and not motion_from.is_file():
@@ -63,5 +64,13 @@ def synth_command(
             dt = time.perf_counter() - t0
             bar.update(task, completed=done, rate=f"{done / dt:.2f} frames/s" if dt > 0 else "")
 
+        todo = frames_to_render(out, cfg, resume)
         generate(out, cfg, progress=tick, resume=resume)
-    console.print(f"wrote {frames} frames to {out} in {time.perf_counter() - t0:.1f} s", highlight=False)
+    took = f"in {time.perf_counter() - t0:.1f} s"
+    if todo == frames:
+        console.print(f"wrote {frames} frames to {out} {took}", highlight=False)
+    elif todo:
+        console.print(f"wrote {todo} frame{'s' * (todo > 1)} to {out} {took}; the other {frames - todo} were there",
+                      highlight=False)
+    else:
+        console.print(f"{out} holds all {frames} frames of these settings already: nothing rendered", highlight=False)

@@ -244,7 +244,9 @@ def pair_result_files(gt: Path, est: Path) -> tuple[list[tuple[Path, Path]], lis
     an estimate without a ground-truth file of its name (KITTI 11-21 have none) is left out and
     named in the second list; a folder with no pair at all is an error."""
     if gt.is_dir() != est.is_dir():
-        raise D3LVOInputError(est, "--gt and --est must both be files or both be folders")
+        kinds = lambda p: "a folder" if p.is_dir() else "a file"  # noqa: E731
+        raise D3LVOInputError(est, f"is {kinds(est)} but --gt {gt} is {kinds(gt)}: --gt and --est must both be "
+                                   "files or both be folders")
     if not gt.is_dir():
         return [(gt, est)], []
     est_files = sorted(est.glob("*.txt"))

@@ -84,6 +84,9 @@ def test_eval_table(tmp_path):
                     (d / "est.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 nan\n" * 5)], ["est.txt", "NaN"]),
         (lambda d: [(d / "gt.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5),
                     (d / "est.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 9)], ["est.txt", "only 5"]),
+        # a folder of ground truth (`--gt ""` is the working folder) beside one estimate file
+        (lambda d: [(d / "gt.txt").mkdir(), (d / "est.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5)],
+         ["est.txt: is a file but --gt", "gt.txt is a folder"]),
     ],
 )
 def test_eval_bad_input_is_one_clear_line(tmp_path, setup, words):
@@ -104,7 +107,14 @@ def test_synth_then_eval(tmp_path):
     out = tmp_path / "seq"
     r = runner.invoke(app, ["synth", "--out", str(out), "--frames", "3", "--size", "320x96", "--seed", "4"])
     assert r.exit_code == 0, r.output
-    assert len(list((out / "image_2").glob("*.png"))) == 3
+    assert len(list((out / "image_2").glob("*.png"))) == 3 and f"wrote 3 frames to {out}" in r.output
+    # run again, it says what it rendered: nothing, then the one frame taken away
+    args = ["synth", "--out", str(out), "--frames", "3", "--size", "320x96", "--seed", "4"]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0 and "holds all 3 frames of these settings already: nothing rendered" in r.output, r.output
+    (out / "image_2" / "000001.png").unlink()
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0 and "wrote 1 frame to" in r.output and "the other 2 were there" in r.output, r.output
     # an estimate twice as long as the GT: ATE = RMS of the GT's distances from the start
     gt = read_poses(out / "poses.txt").poses
     est = gt.copy()
@@ -132,6 +142,9 @@ def test_synth_bad_size_and_unwritable(tmp_path):
     blocker.write_text("")
     r = runner.invoke(app, ["synth", "--out", str(blocker / "seq"), "--frames", "2", "--size", "320x96"])
     assert r.exit_code == 1 and "cannot create" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["synth", "--out", str(blocker), "--frames", "2", "--size", "320x96"])  # before the bar
+    assert r.exit_code == 1 and r.output.strip() == f"error: {blocker}: is a file: --out names the folder to render " \
+                                                     "the sequence into", r.output
 
 
 def test_eval_several_estimates_one_table_and_a_scale_hint(tmp_path):

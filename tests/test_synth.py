@@ -164,6 +164,8 @@ def test_other_settings_in_the_same_folder_are_refused(tmp_path):
     generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96))
     with pytest.raises(D3LVOInputError, match=r"other settings \(seed 1 there, 2 asked\).*--overwrite"):
         generate(tmp_path / "s", SynthConfig(frames=2, seed=2, width=320, height=96))
+    with pytest.raises(D3LVOInputError, match=r"other settings \(traffic unset there, 2.0 asked\)"):  # a static render
+        generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96, traffic=2.0))
     generate(tmp_path / "s", SynthConfig(frames=2, seed=2, width=320, height=96), resume=False)  # --overwrite
 
 

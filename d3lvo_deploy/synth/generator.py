@@ -121,6 +121,14 @@ def _frame_done(out: Path, name: str, cfg: SynthConfig, last: bool) -> bool:
     return all(f.is_file() and f.stat().st_size > 0 for f in files)
 
 
+def frames_to_render(out: Path, cfg: SynthConfig, resume: bool = True) -> int:
+    """How many of the frames `generate` renders (a resumed folder keeps the ones it holds), so
+    that the command says what it did rather than the frames asked for."""
+    if not resume or not (Path(out) / "synth.json").is_file():
+        return cfg.frames
+    return sum(not _frame_done(Path(out), f"{i:06d}", cfg, i == cfg.frames - 1) for i in range(cfg.frames))
+
+
 def _write_atomic(path: Path, data: bytes) -> None:
     """Write to a temporary name and rename, so a killed run never leaves a half-written frame."""
     tmp = path.with_name(path.name + ".part")
@@ -234,6 +242,8 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
     calibration."""
     out = Path(out)
     meta_path = out / "synth.json"
+    if out.exists() and not out.is_dir():
+        raise D3LVOInputError(out, "is a file: --out names the folder to render the sequence into")
     if not meta_path.exists():
         if str(out) in ("", ".") and any(out.iterdir()):  # an empty --out: the working directory, the user's files
             raise D3LVOInputError(None, "--out is the working directory, which holds other files: give a folder to "
@@ -255,9 +265,10 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
                                              "use another --out, or --overwrite to render the folder again")
         if old != new:
             key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
-            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {old.get(key)!r} "
-                                       f"there, {new.get(key)!r} asked); use another --out, or --overwrite to render "
-                                       "it again")
+            shown = lambda v: "unset" if v is None else repr(v)  # noqa: E731  (a static render has no traffic)
+            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {shown(old.get(key))} "
+                                       f"there, {shown(new.get(key))} asked); use another --out, or --overwrite to "
+                                       "render it again")
 
 
 def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,
