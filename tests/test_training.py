@@ -82,8 +82,9 @@ def test_ipbasic_fills_holes_and_keeps_near_points():
 
 
 def test_short_training_beats_the_baselines(turning_drives, tmp_path):
-    """50 steps on a 12-frame turning drive, scored on held-out pairs of another drive: the flow
-    beats predicting zero flow at every level, and improves on the untrained network; rotation and
+    """50 steps of two pairs on a 12-frame turning drive, scored on held-out pairs of another
+    drive: the flow beats predicting zero flow at every level, and improves on the untrained
+    network; rotation and
     translation beat predicting no motion and the best constant (the training pairs' mean motion)
     by an order of magnitude. The pose comes from the Gauss-Newton step (geometry); what training
     adds to it is the flow and the confidences (rotation error falls too). IP-Basic completion, so
@@ -99,7 +100,7 @@ def test_short_training_beats_the_baselines(turning_drives, tmp_path):
     torch.manual_seed(0)
     before = pair_metrics(D3LVO(cfg), [str(held_dir)])
     ck = tmp_path / "ck.pt"
-    tc = TrainConfig(data=[str(train_dir)], out=str(ck), steps=50, batch_size=4, lr=2e-3, warmup=5, ckpt_every=50,
+    tc = TrainConfig(data=[str(train_dir)], out=str(ck), steps=50, batch_size=2, lr=2e-3, warmup=5, ckpt_every=50,
                      augment=AugmentConfig(flip=0.5, brightness=0.1, rotation_deg=0),
                      depth_cache=str(tmp_path / "cache"))  # the same samples, projected once
     train(cfg, tc)
@@ -114,8 +115,8 @@ def test_short_training_beats_the_baselines(turning_drives, tmp_path):
     const_r = float(np.degrees(np.mean([abs(np.arcsin(held[i]["matrix"][0, 2]) - mean_yaw) for i in range(len(held))])))
     print("before", before, "\nafter", after, f"\nconstant predictor: {const_t:.4f} m, {const_r:.4f} deg")
     # every level beats zero flow and the untrained network by 5 %, the finest by 10 % (measured:
-    # 0.91, 0.87, 0.85 of zero flow's EPE at h/16, h/8, h/4; the h/16 grid of this 320x96 input is
-    # 20x6 cells, where flow learns least; rotation 0.047 deg after, 0.057 before)
+    # 0.90, 0.86, 0.85 of zero flow's EPE at h/16, h/8, h/4; the h/16 grid of this 320x96 input is
+    # 20x6 cells, where flow learns least; rotation 0.052 deg after, 0.057 before)
     for lvl in cfg.flow_levels:
         assert after[f"flow_epe_l{lvl}"] < 0.95 * after[f"flow_epe_l{lvl}_zero"]
         assert after[f"flow_epe_l{lvl}"] < 0.95 * before[f"flow_epe_l{lvl}"]
