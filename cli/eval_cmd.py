@@ -89,6 +89,7 @@ def eval_command(
                 console.print(lead("note", "yellow", f" {e}: no estimate for {', '.join(missing[:5])}{more} of {gt}: "
                                                      "those sequences are not scored"), highlight=False)
         reports[label] = evaluate_files(pairs, align=align)
+        reports[label].per_sequence = gt.is_dir()
     many = len(reports) > 1
     for label, report in reports.items():
         for s in report.sequences:

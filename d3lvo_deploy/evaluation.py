@@ -50,6 +50,9 @@ class SequenceResult:
 class EvalReport:
     sequences: list[SequenceResult]
     align: str
+    # folders of NN.txt files: the per-sequence shape even where one sequence pairs up, so that a
+    # script reading it does not depend on how many did
+    per_sequence: bool = False
 
     @property
     def overall(self) -> dict:
@@ -69,8 +72,9 @@ class EvalReport:
         }
 
     def to_dict(self) -> dict:
-        """One sequence: its numbers at top level; several: `sequences` plus the pooled mean on top."""
-        if len(self.sequences) == 1:
+        """One sequence: its numbers at top level; several, or folders: `sequences` plus the pooled
+        mean on top."""
+        if len(self.sequences) == 1 and not self.per_sequence:
             return {**self.sequences[0].to_dict(), "align": self.align}
         return {**self.overall, "align": self.align, "sequences": [s.to_dict() for s in self.sequences]}
 
