@@ -177,6 +177,25 @@ def test_motion_replays_real_gt(tmp_path):
     np.testing.assert_allclose(read_poses(out / "poses.txt").poses, relative(gt[0], gt), atol=1e-8)
 
 
+def test_motion_in_millimetres_is_refused_before_any_render(tmp_path):
+    """A trajectory in millimetres (steps of ~1,000 "m" a frame) would build a world kilometres
+    long: one error naming the file and the step, nothing written."""
+    from d3lvo_deploy.poses import write_poses
+    from d3lvo_deploy.synth.motion import MAX_STEP_M
+
+    poses = np.tile(np.eye(4), (6, 1, 1))
+    poses[:, 2, 3] = 1000.0 * np.arange(6)  # 1 m a frame, in millimetres
+    write_poses(tmp_path / "mm.txt", poses)
+    with pytest.raises(D3LVOInputError, match=r"mm.txt: moves 1000.0 m between poses 0 and 1: .* more than 10 m"):
+        generate(tmp_path / "out", SynthConfig(frames=4, seed=0, width=320, height=96, motion_from=str(tmp_path / "mm.txt")))
+    assert not (tmp_path / "out").exists()
+    poses[:, 2, 3] = MAX_STEP_M * np.arange(6)  # at the bound: a fast drive, accepted
+    write_poses(tmp_path / "fast.txt", poses)
+    from d3lvo_deploy.synth.motion import replay_gt
+
+    assert replay_gt(tmp_path / "fast.txt", 4).shape == (4, 4, 4)
+
+
 def test_synthetic_drive_is_plausible():
     from d3lvo_deploy.synth.motion import synthetic_drive
 

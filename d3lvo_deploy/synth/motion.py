@@ -111,10 +111,20 @@ def synthetic_drive(frames: int, seed: int, cfg: DriveConfig = DriveConfig()) ->
     return relative(poses[0], poses)
 
 
+MAX_STEP_M = 10.0  # per 0.1 s frame: 360 km/h
+
+
 def replay_gt(path: str | Path, frames: int, start: int = 0) -> np.ndarray:
     """Frames [start, start+frames) of a real KITTI GT file, re-based so the first pose is identity."""
     traj = read_poses(path)
     if start < 0 or start + frames > len(traj):
         raise D3LVOInputError(path, f"has {len(traj)} poses; frames {start}..{start + frames - 1} requested")
     poses = traj.poses[start : start + frames]
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    if len(steps) and steps.max() > MAX_STEP_M:  # the world is built along the path: km-long steps exhaust memory
+        i = start + int(steps.argmax())
+        raise D3LVOInputError(path, f"moves {steps.max():.1f} m between poses {i} and {i + 1}: the synthesizer renders "
+                                    f"a frame every 0.1 s, and more than {MAX_STEP_M:.0f} m per frame "
+                                    f"({MAX_STEP_M * 36:.0f} km/h) is no drive (poses in millimetres, or every "
+                                    "n-th pose?)")
     return relative(poses[0], poses)
