@@ -207,6 +207,8 @@ class PointPose(nn.Module):
             keep = gain > self.cfg.pt_select
             if self.cfg.pt_select_rotation > 0:
                 keep = keep & rotations_differ(levels[-1], classical, self.cfg.pt_select_rotation)
+            if self.cfg.pt_select_share < 1:
+                keep = keep & (distrusted_share(weight, mask) <= self.cfg.pt_select_share)
             if self.cfg.pt_select_unexplained > 0:
                 # the evidence read again against the classical pose: what it leaves unexplained
                 # (a start far off makes a static scene look as if it moved; the classical pose

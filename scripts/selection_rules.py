@@ -187,6 +187,10 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
                    or bool(fits(ps, i, n, r, True))) for r in SCAN_PASS]
         rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: bool(fits(ps, i, n, r, True)))
                   for r in SCAN_PASS]
+        # the shipped selection (the photometric test, or the scan's pass at 0.7) with a cap on the
+        # share of points the network distrusts on the photometric side
+        rules += [(f"shipped, share <= {f}, or {scan} W < 0.7 C", lambda ps, i, f=f, n=scan:
+                   (shipped(ps, i) and ps[i]["share"] <= f) or bool(fits(ps, i, n, 0.7, True))) for f in SHARES]
         rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
                    (shipped(ps, i) and fits(ps, i, n, v, False) is not False) or bool(fits(ps, i, n, r, True)))
                   for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]

@@ -953,17 +953,27 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
                  **{n: np.roll(one[n], 1, -1) for n in names if n.startswith(("stack2_p", "image1_p"))})
     batch = {n: np.concatenate([one[n], other[n]]) for n in names}
 
-    def torch_poses(**solver):  # (kept, next start) of both pairs, the same weights under these settings
+    def torch_poses(weights=False, **solver):  # (kept, next start) of both pairs, the same weights under these settings
         m = D3LVO(replace(model.cfg, pt_refine=2, **solver)).eval()
         m.load_state_dict(model.state_dict())
         stage = FlowPoseStage(m)
         with torch.no_grad():
             out = dict(zip(stage.output_names, stage(*(torch.from_numpy(batch[n]) for n in names))))
-        return out["matrix"].double().numpy(), out["start_next"].double().numpy()
+        poses = out["matrix"].double().numpy(), out["start_next"].double().numpy()
+        return (*poses, out["point_weights"]) if weights else poses
 
     classical, weighted = torch_poses(pt_select=0.999)
-    kept, _ = torch_poses(pt_select=1e-6)
+    kept, _, weight = torch_poses(pt_select=1e-6, weights=True)
     np.testing.assert_allclose(kept, weighted, atol=1e-12)  # the gain alone keeps both weighted poses
+    # `pt_select_share` between the two pairs' shares of distrusted points: the pair whose network
+    # distrusts more of its points keeps the classical pose, the other its weighted one
+    from models.pose_points import distrusted_share
+
+    shares = distrusted_share(weight, torch.from_numpy(batch["point_mask1"])).numpy()
+    assert 0 < shares.min() < shares.max() < 1, shares
+    kept, _ = torch_poses(pt_select=1e-6, pt_select_share=float(shares.mean()))
+    np.testing.assert_allclose(kept, np.stack([weighted[i] if shares[i] < shares.mean() else classical[i]
+                                               for i in range(2)]), atol=1e-12)
     assert (np.abs(weighted - classical).max(axis=(1, 2)) > 1e-4).all()  # far beyond the tolerance below
     angles = np.degrees(rotation_angle_precise(classical[:, :3, :3].transpose(0, 2, 1) @ weighted[:, :3, :3]))
     assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
@@ -1163,6 +1173,9 @@ def test_bad_solver_settings_are_one_clear_error():
         D3LVOConfig.small(pose_head="points", pt_gate=1.5)
     with pytest.raises(ValueError, match="pt_restart_depth must be in"):
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_restart_depth=2"]))
+    for share in ("0", "1.5"):  # a cap of 0 would never keep the weighted pose: off is 1
+        with pytest.raises(ValueError, match=r"pt_select_share must be a share in \(0, 1\] \(1: off\)"):
+            D3LVOConfig.small(pose_head="points", **solver_settings([f"pt_select_share={share}"]))
     with pytest.raises(D3LVOInputError, match="solver settings only"):
         solver_settings(["height=10"])
     # numbers as Python writes them, negative ones too; a word for a number is refused by name
