@@ -99,7 +99,8 @@ def eval_command(
     if plot is not None:
         first = next(iter(reports.values()))
         for s in first.sequences:
-            target = plot if len(first.sequences) == 1 else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
+            one = len(first.sequences) == 1 and not first.per_sequence  # folders: named by sequence
+            target = plot if one else plot.with_name(f"{plot.stem}_{s.name}{plot.suffix}")
             curves = {"GT": s.gt_poses}
             for label, report in reports.items():  # the same sequence of each estimate, by name
                 r = next((x for x in report.sequences if x.name == s.name), None)

@@ -70,7 +70,8 @@ def synth_command(
     if todo == frames:
         console.print(f"wrote {frames} frames to {out} {took}", highlight=False)
     elif todo:
-        console.print(f"wrote {todo} frame{'s' * (todo > 1)} to {out} {took}; the other {frames - todo} were there",
-                      highlight=False)
+        kept = frames - todo
+        console.print(f"wrote {todo} frame{'s' * (todo > 1)} to {out} {took}; the other {kept} "
+                      f"{'were' if kept > 1 else 'was'} there", highlight=False)
     else:
         console.print(f"{out} holds all {frames} frames of these settings already: nothing rendered", highlight=False)

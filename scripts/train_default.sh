@@ -491,19 +491,24 @@ for s in st_03 st_07 st_d1 st_d2 st_02 st_08; do static2+=(--data "$OUT/data/$s"
 OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${static2[@]}" --val "$OUT/data/val_traffic" \
   --out "$OUT/static2.pt" $(init_or_resume "$OUT/dense_solver.pt" "$OUT/static2.pt") \
   --steps 400 --lr 1.5e-4 --val-every 200 --solver-loss 1 --seed 2
+# (both without the cap: the shipped weights exported with pt_select_share 1 beside it)
 .venv/bin/python -c "from models.checkpoint import load_checkpoint, slim_checkpoint; from models.config import SOLVER_KEYS; \
   c = load_checkpoint('d3lvo_deploy/default_model/default.pt')['config']; \
-  slim_checkpoint('$OUT/static2.pt', '$OUT/static2_slim.pt', {k: getattr(c, k) for k in SOLVER_KEYS})"
+  slim_checkpoint('$OUT/static2.pt', '$OUT/static2_slim.pt', {**{k: getattr(c, k) for k in SOLVER_KEYS}, 'pt_select_share': 1.0})"
 "$D3LVO" export --ckpt "$OUT/static2_slim.pt" --out "$OUT/static2_onnx" --overwrite
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/no_cap" --overwrite --set pt_select_share=1
 for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
   "$D3LVO" run "$d" --onnx "$OUT/static2_onnx" --backend onnxruntime --threads 1 --out "$OUT/eval/static2_$(basename "$d").txt" --overwrite
-  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/shipped_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --onnx "$OUT/no_cap" --backend onnxruntime --threads 1 --out "$OUT/eval/shipped_$(basename "$d").txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$(basename "$d").txt" --overwrite
 done
 .venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 .venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
   'd3lvo_deploy/default_model/default.pt', dict(pt_select_share=0.7))"
 "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model --overwrite
+for d in "$OUT"/data/val_static_4 "$OUT"/data/val_traffic_3; do  # the graph against the script's scores
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/capval_$(basename "$d").txt" --overwrite
+done
 for d in "$OUT"/data/static_2?? "$OUT"/data/heldout_?? "$OUT"/data/traffic_3?? "$OUT"/data/demo_909; do
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/cap_$(basename "$d").txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$(basename "$d").txt" --overwrite

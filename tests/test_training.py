@@ -335,7 +335,8 @@ def test_ddp_replicas_stay_identical_with_clipping_and_equal_one_process(small_s
     keys = [k for k, v in one["model"].items() if v.is_floating_point()]
     diff = torch.cat([(ddp["model"][k] - one["model"][k]).flatten() for k in keys]).norm()
     moved = torch.cat([(one["model"][k] - start[k]).flatten() for k in keys]).norm()
-    # measured: 8.5e-5 of the distance trained (Adam divides tiny gradients' rounding by tiny
+    print(f"DDP against one process: {float(diff / moved):.2e} of the distance trained")
+    # measured: 4.5e-5 of the distance trained (Adam divides tiny gradients' rounding by tiny
     # norms); 0.38 where both ranks are handed the same pairs
     assert diff < 1e-3 * moved, (float(diff), float(moved))
     for k in ("s_t", "s_q"):
