@@ -9,8 +9,9 @@ scored without running the network again. Prints, per rule, each drive's t_rel %
 `ate`, for drives under 100 m), and the sums the choice reads: on static drives the difference
 to the classical pose kept always, on drives with traffic (a `synth.json` with traffic above 0)
 the mean and the smallest reduction against it. Beside the grid, at the shipped thresholds, three
-rules: a cap on the share of frame t-1's points the network distrusts (`pt_select_share`, which
-ships at 0.7 with the scan's pass), the test passed on the previous pair too (a mover stays in view for several pairs), and the gain held out:
+more rules: a cap on the share of frame t-1's points the network distrusts (`pt_select_share`,
+which ships at 0.7 with the scan's pass), the test passed on the previous pair too (a mover stays
+in view for several pairs), and the gain held out:
 the weighted solve run again on half of the points (every second one of the list) and scored on
 the other half, both ways round, the smaller gain taken (`held_out_gain`). And one that could:
 the network's confidence read again with the classical pose as the motion its evidence is

@@ -186,8 +186,10 @@ def test_motion_in_millimetres_is_refused_before_any_render(tmp_path):
     poses = np.tile(np.eye(4), (6, 1, 1))
     poses[:, 2, 3] = 1000.0 * np.arange(6)  # 1 m a frame, in millimetres
     write_poses(tmp_path / "mm.txt", poses)
-    with pytest.raises(D3LVOInputError, match=r"mm.txt: moves 1000.0 m between frames 0 and 1 \(lines 1 and 2\): .* more than 10 m"):
-        generate(tmp_path / "out", SynthConfig(frames=4, seed=0, width=320, height=96, motion_from=str(tmp_path / "mm.txt")))
+    words = r"mm.txt: moves 1000.0 m between frames 0 and 1 \(lines 1 and 2\): .* more than 10 m"
+    with pytest.raises(D3LVOInputError, match=words):
+        generate(tmp_path / "out", SynthConfig(frames=4, seed=0, width=320, height=96,
+                                               motion_from=str(tmp_path / "mm.txt")))
     assert not (tmp_path / "out").exists()
     poses[:, 2, 3] = MAX_STEP_M * np.arange(6)  # at the bound: a fast drive, accepted
     write_poses(tmp_path / "fast.txt", poses)

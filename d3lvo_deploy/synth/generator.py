@@ -266,9 +266,9 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
         if old != new:
             key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
             shown = lambda v: "unset" if v is None else repr(v)  # noqa: E731  (a static render has no traffic)
-            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} {shown(old.get(key))} "
-                                       f"there, {shown(new.get(key))} asked); use another --out, or --overwrite to "
-                                       "render it again")
+            raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} "
+                                       f"{shown(old.get(key))} there, {shown(new.get(key))} asked); use another "
+                                       "--out, or --overwrite to render it again")
 
 
 def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] | None = None,

@@ -123,8 +123,8 @@ def replay_gt(path: str | Path, frames: int, start: int = 0) -> np.ndarray:
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     if len(steps) and steps.max() > MAX_STEP_M:  # the world is built along the path: km-long steps exhaust memory
         i = start + int(steps.argmax())
-        raise D3LVOInputError(path, f"moves {steps.max():.1f} m between frames {i} and {i + 1} (lines {i + 1} and {i + 2}): the synthesizer renders "
-                                    f"a frame every 0.1 s, and more than {MAX_STEP_M:.0f} m per frame "
-                                    f"({MAX_STEP_M * 36:.0f} km/h) is no drive (poses in millimetres, or every "
-                                    "n-th pose?)")
+        raise D3LVOInputError(path, f"moves {steps.max():.1f} m between frames {i} and {i + 1} (lines {i + 1} and "
+                                    f"{i + 2}): the synthesizer renders a frame every 0.1 s, and more than "
+                                    f"{MAX_STEP_M:.0f} m per frame ({MAX_STEP_M * 36:.0f} km/h) is no drive (poses "
+                                    "in millimetres, or every n-th pose?)")
     return relative(poses[0], poses)
