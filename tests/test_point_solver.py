@@ -929,7 +929,9 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     of the pair whose rotations differ more and the classical pose of the other, alone and in the
     batch, in both graphs, and the next start is the weighted pose either way. The classical solve
     exported alone (`classical`) gives torch's classical poses, and the flow+pose graph that takes
-    it (`flowpose_weighted`) every output of the batched graph, to the bit."""
+    it (`flowpose_weighted`) every output of the batched graph, to the bit. A cap on the share of
+    distrusted points (`pt_select_share`) between the two pairs' shares keeps the classical pose of
+    the pair whose network distrusts more, in torch and in that exported graph."""
 
     import onnxruntime as ort
 
@@ -1000,6 +1002,20 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
             both = given.run(None, {**feeds, "classical_pose": pose})
             for name, a, b in zip([o.name for o in sess.get_outputs()], sess.run(None, feeds), both):
                 np.testing.assert_array_equal(a, b, err_msg=f"{split.format('flowpose_weighted')}: {name}")
+    # the cap exported: the flow+pose graph that takes the classical pose, with the gain alone and
+    # `pt_select_share` between the pairs' shares, keeps the weighted pose of the pair whose network
+    # distrusts less and the classical pose of the other (torch's choice above)
+    from export.onnx_export import DEFAULT_OPSET, _export_one
+
+    cap = D3LVO(replace(model.cfg, pt_refine=2, pt_select=1e-6, pt_select_share=float(shares.mean()))).eval()
+    cap.load_state_dict(model.state_dict())
+    stage = FlowPoseStage(cap, weighted=True)
+    _export_one(stage, _sample_inputs(cap, cap.cfg.height, cap.cfg.width)["flowpose_weighted"], tmp_path / "cap.onnx",
+                DEFAULT_OPSET, dynamic_batch=True)
+    capped = ort.InferenceSession(str(tmp_path / "cap.onnx"), providers=["CPUExecutionProvider"])
+    kept = capped.run(["matrix"], {**batch, "classical_pose": classical.astype(np.float32)})[0]
+    np.testing.assert_allclose(kept, np.stack([weighted[i] if shares[i] < shares.mean() else classical[i]
+                                               for i in range(2)]), atol=1e-5)
 
 
 def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(scan_judge_model, small_synth,
