@@ -480,7 +480,7 @@ for d in "$OUT"/data/val_traffic_* "$OUT"/data/val_static_2 "$OUT"/data/val_stat
 done
 .venv/bin/python -m models.pair_eval d3lvo_deploy/default_model/default.pt "$OUT"/data/traffic_3?? --pairs 199
 
-# Then the static drives' gap to the classical mode (docs/model-card.md). Tried and not shipped: the
+# Then the static drives' gap to the classical mode (docs/model-card.md). Measured, not shipped: the
 # confidence net's pose-loss training continued from the shipped weights with the six static training
 # drives given twice (400 steps, lr 1.5e-4, seed 2), scored on the twenty-four validation drives beside
 # the shipped weights and the classical mode. Shipped: a cap on the share of frame t-1's points the
