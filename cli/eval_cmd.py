@@ -88,8 +88,7 @@ def eval_command(
                 more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
                 console.print(lead("note", "yellow", f" {e}: no estimate for {', '.join(missing[:5])}{more} of {gt}: "
                                                      "those sequences are not scored"), highlight=False)
-        reports[label] = evaluate_files(pairs, align=align)
-        reports[label].per_sequence = gt.is_dir()
+        reports[label] = evaluate_files(pairs, align=align, per_sequence=gt.is_dir())
     many = len(reports) > 1
     for label, report in reports.items():
         for s in report.sequences:

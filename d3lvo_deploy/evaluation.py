@@ -233,14 +233,15 @@ def evaluate(gt: Trajectory | np.ndarray, est: Trajectory | np.ndarray, align: s
     )
 
 
-def evaluate_files(pairs: list[tuple[Path, Path]], align: str = "none") -> EvalReport:
-    """Evaluate (gt_file, est_file) pairs; sequence names are the estimate file stems."""
+def evaluate_files(pairs: list[tuple[Path, Path]], align: str = "none", per_sequence: bool = False) -> EvalReport:
+    """Evaluate (gt_file, est_file) pairs; sequence names are the estimate file stems
+    (`per_sequence`: pairs from folders, `EvalReport.per_sequence`)."""
     results = []
     for gt_path, est_path in pairs:
         gt = read_poses(gt_path)
         est = read_poses(est_path)
         results.append(evaluate(gt, est, align=align, name=Path(est_path).stem, est_name=est_path, gt_name=gt_path))
-    return EvalReport(results, align)
+    return EvalReport(results, align, per_sequence)
 
 
 def pair_result_files(gt: Path, est: Path) -> tuple[list[tuple[Path, Path]], list[str]]:

@@ -121,12 +121,15 @@ def _frame_done(out: Path, name: str, cfg: SynthConfig, last: bool) -> bool:
     return all(f.is_file() and f.stat().st_size > 0 for f in files)
 
 
+def _renders(out: Path, cfg: SynthConfig, i: int, resume: bool) -> bool:
+    """Whether `generate` renders frame i: always, unless a resumed folder holds it whole."""
+    return not (resume and _frame_done(out, f"{i:06d}", cfg, i == cfg.frames - 1))
+
+
 def frames_to_render(out: Path, cfg: SynthConfig, resume: bool = True) -> int:
     """How many of the frames `generate` renders (a resumed folder keeps the ones it holds), so
     that the command says what it did rather than the frames asked for."""
-    if not resume or not (Path(out) / "synth.json").is_file():
-        return cfg.frames
-    return sum(not _frame_done(Path(out), f"{i:06d}", cfg, i == cfg.frames - 1) for i in range(cfg.frames))
+    return sum(_renders(Path(out), cfg, i, resume) for i in range(cfg.frames))
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -299,7 +302,7 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
     K = calib.K2
     for i in range(cfg.frames):
         name = f"{i:06d}"
-        if not (resume and _frame_done(out, name, cfg, i == cfg.frames - 1)):
+        if _renders(out, cfg, i, resume):
             rng = np.random.default_rng([cfg.seed, 2, i])
             frame_scene, owner = scene, None
             if vehicles:
