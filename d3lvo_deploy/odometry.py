@@ -24,7 +24,7 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, is_rigid, relative
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
-from .points import (CLASSICAL_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds,
+from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds,
                      textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -191,6 +191,18 @@ class Odometry:
         saved beside the poses (`d3lvo_deploy.pipeline`)."""
         return "start_next" in self.model.output_names("flowpose")
 
+    @property
+    def chains_classical(self) -> bool:
+        """The graph's classical solve starts from the previous classical pose (`pt_classical_chain`)."""
+        return CLASSICAL_NEXT_OUTPUT in self.model.output_names("flowpose")
+
+    def start_state(self) -> np.ndarray:
+        """(K,4,4) where the next pair starts: `motion2`, and the classical solve's own start where
+        the graph `chains_classical`; what a resumed run needs (`prime`'s `start`)."""
+        if not self.chains_classical:
+            return self.motion2[None]
+        return np.stack([self.motion2, self.motion2 if self.motion2_classical is None else self.motion2_classical])
+
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
         self._prev: dict[str, np.ndarray] | None = None
@@ -202,6 +214,9 @@ class Odometry:
         # `start_next` (`keeps_own_start`) says where instead: its weighted pose, which its kept pose
         # need not be
         self.motion2 = np.eye(4)
+        # with `chains_classical`: the previous classical pose, where the classical solve starts
+        # (None before the first pair, which starts both solves alike)
+        self.motion2_classical: np.ndarray | None = None
         self.cold = True  # no previous motion yet
         self.frames = 0
 
@@ -348,6 +363,9 @@ class Odometry:
             start = out.get("start_next")
             if start is not None and np.all(np.isfinite(start)):
                 self.motion2 = start[0].astype(np.float64)
+            classical = out.get(CLASSICAL_NEXT_OUTPUT)
+            if classical is not None and np.all(np.isfinite(classical)):
+                self.motion2_classical = classical[0].astype(np.float64)
             self.cold = False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
@@ -368,23 +386,28 @@ class Odometry:
     def _pair_inputs(self, solver: SolverFrame | None) -> dict[str, np.ndarray]:
         """The pair's camera and solver inputs (frame t's solver frame `solver`), from `motion2`;
         the first pair of a point-solver graph, which has no previous motion, from the classical
-        tracker's solve from `cold_start`'s guesses (`direct.first_motion`)."""
+        tracker's solve from `cold_start`'s guesses (`direct.first_motion`). Where the graph
+        `chains_classical`, the classical solve's start too, from the previous classical pose."""
         feeds, start = {}, self.motion2
         if self.model.point_solver:
             prev = self._prev["solver_frame"]
             feeds = solver_feeds(prev, solver, self.calib.K2, self.points.capacity)
             if self.cold and len(prev.points):
                 start = cold_start_motion(prev, solver, self.calib.K2, self.model.config, self.cold_start)
+            if self.chains_classical:
+                classical = start if self.cold or self.motion2_classical is None else self.motion2_classical
+                feeds[CLASSICAL_START_INPUT] = np.asarray(classical, np.float32).reshape(1, 4, 4)
         return {**camera_inputs(self.pre.K, start), **feeds}
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
         """Resume: take frame t-1 and its known pose without estimating anything; with the pose
         before it, the next pair starts from that motion, as an uninterrupted run would (or from
-        `start`, the saved `motion2`, where the graph `keeps_own_start`)."""
+        `start`, the saved `start_state`, where the graph `keeps_own_start`)."""
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
-        start = None if start is None else rigid_pose(start, "prime's start")
+        if start is not None:  # one 4x4, or `start_state`'s (K,4,4)
+            start = np.stack([rigid_pose(S, "prime's start") for S in (start if np.ndim(start) == 3 else [start])])
         self._prev = self.encode(image, points)
         self.pose = pose
         if previous_pose is not None:
@@ -392,7 +415,9 @@ class Odometry:
             self.motion2 = self._motion_between(previous_pose, self.pose)
             self.cold = False
         if start is not None:
-            self.motion2 = np.array(start, dtype=np.float64)
+            self.motion2 = start[0]
+            if len(start) > 1:
+                self.motion2_classical = start[1]
         self.frames += 1
 
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:

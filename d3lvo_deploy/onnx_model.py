@@ -22,12 +22,12 @@ from .backends import BESIDE_STAGE, WEIGHTED_STAGE, stage_configs
 from .backends import resolve_providers  # noqa: F401
 from .errors import D3LVOInputError
 from .manifest import for_engine, load_manifest
-from .points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
+from .points import CLASSICAL_INPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT
 
 # the flow+pose inputs that are not encoder outputs (export.stages.CAMERA_INPUTS, SOLVER_INPUTS; the
 # point solver's image pyramids `image1_pK`, `stack2_pK` too)
 CAMERA_AND_SOLVER_INPUTS = ("intrinsics", "init_pose", "image1", "image2", "points1", "point_mask1", "image_intrinsics",
-                            SCAN_DEPTH_INPUT, CLASSICAL_INPUT)
+                            SCAN_DEPTH_INPUT, CLASSICAL_INPUT, CLASSICAL_START_INPUT)
 
 
 def flowpose_feeds(input_names: list[str], prev: dict, cur: dict, camera: dict | None = None) -> dict:
@@ -134,7 +134,10 @@ class StageModel:
 
     def solve_classical(self, solver_inputs: dict[str, np.ndarray]) -> np.ndarray:
         """The classical mode's pose of the pair ((1,4,4), `CLASSICAL_INPUT`) from the flow+pose
-        graph's solver inputs and `init_pose` (`Odometry`, on its helper thread)."""
+        graph's solver inputs and `init_pose`, or `CLASSICAL_START_INPUT` where given (`Odometry`, on
+        its helper thread)."""
+        if CLASSICAL_START_INPUT in solver_inputs:
+            solver_inputs = {**solver_inputs, "init_pose": solver_inputs[CLASSICAL_START_INPUT]}
         feeds = flowpose_feeds(self.input_names(BESIDE_STAGE), {}, {}, solver_inputs)
         return self.run(BESIDE_STAGE, feeds)[CLASSICAL_INPUT]
 

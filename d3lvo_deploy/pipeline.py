@@ -107,20 +107,26 @@ def start_file(out: Path) -> Path:
     return out.with_name(out.name + ".start")
 
 
-def _saved_starts(path: Path, count: int) -> np.ndarray | None:
-    """The first `count` starts saved in `path` (4x4 each; the file rewritten to hold just
-    those), or None where fewer were saved or they cannot be read."""
+def _saved_starts(path: Path, count: int, per_line: int = 1) -> np.ndarray | None:
+    """The first `count` lines of starts saved in `path` ((count, per_line, 4, 4): each line is
+    `Odometry.start_state`; the file rewritten to hold just those), or None where fewer were saved
+    or they cannot be read."""
     try:
         rows = [r.split() for r in path.read_text().splitlines()]
-        rows = [r for r in rows if len(r) == 12]
+        rows = [r for r in rows if len(r) == 12 * per_line]
         if len(rows) < count:
             return None
-        T = np.tile(np.eye(4), (count, 1, 1))
-        T[:, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, 3, 4)
+        T = np.tile(np.eye(4), (count, per_line, 1, 1))
+        T[:, :, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, per_line, 3, 4)
         path.write_text("".join(" ".join(r) + "\n" for r in rows[:count]))
     except (OSError, ValueError):  # UnicodeDecodeError is a ValueError
         return None
     return T
+
+
+def _start_line(state: np.ndarray) -> str:
+    """One line of the start file: `Odometry.start_state`'s matrices, 12 numbers each."""
+    return " ".join(format_kitti(T) for T in state) + "\n"
 
 
 def _open_starts(odo, out: Path, done: int, stack: ExitStack):
@@ -134,7 +140,7 @@ def _open_starts(odo, out: Path, done: int, stack: ExitStack):
         except OSError:
             pass
         return None, None
-    saved = _saved_starts(path, done) if done else None
+    saved = _saved_starts(path, done, len(odo.start_state())) if done else None
     if done > 1 and saved is None:
         warnings.warn(f"{path}: the solver's saved starts are missing or short, so the resumed run starts from "
                       "the last poses' motion and may differ slightly from an uninterrupted run")
@@ -310,7 +316,9 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
                       done[-2] if len(done) >= 2 else None, **extra)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
-                starts.write("".join(format_kitti(T) + "\n" for T in [np.eye(4)] * (len(done) - 1) + [odo.motion2]))
+                state = odo.start_state()
+                rest = [np.tile(np.eye(4), (len(state), 1, 1))] * (len(done) - 1)
+                starts.write("".join(_start_line(S) for S in [*rest, state]))
         t_wall0 = time.perf_counter()
         pipelined = plan.depth > 1
         deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
@@ -381,7 +389,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
                 line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
                 if starts is not None:  # before the pose: a run stopped between the two resumes exactly
-                    starts.write(format_kitti(odo.motion2) + "\n")
+                    starts.write(_start_line(odo.start_state()))
                 fh.write(line + "\n")
                 fh.flush()
                 for k, v in odo.last_timing.rows.items():  # the time beside (another thread) not in the total

@@ -21,6 +21,10 @@ SCAN_DEPTH_INPUT = "scan_depth2"
 # the classical mode's pose of the pair (frame t in frame t-1, (1,4,4)): the `classical` stage's
 # output and, where a model folder has that stage, an input of its `flowpose_weighted` graph
 CLASSICAL_INPUT = "classical_pose"
+# with `pt_classical_chain`: where the flow+pose graph that solves both poses starts the classical
+# solve ((1,4,4), the previous pair's classical pose), and the classical pose it outputs for the next
+CLASSICAL_START_INPUT = "classical_start"
+CLASSICAL_NEXT_OUTPUT = "classical_next"
 
 
 @dataclass

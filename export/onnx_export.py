@@ -26,7 +26,7 @@ import d3lvo_deploy
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import MANIFEST_FORMAT, MANIFEST_VERSION, STANDARD_DOMAINS
 from d3lvo_deploy.manifest import sha256_file as sha256
-from d3lvo_deploy.points import SCAN_DEPTH_INPUT
+from d3lvo_deploy.points import CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT
 from d3lvo_deploy.results import make_output_folder
 from models.checkpoint import build_model, load_checkpoint
 from models.config import check_solver_settings, input_size_problem
@@ -91,7 +91,8 @@ def _sample_inputs(model: D3LVO, h: int, w: int) -> dict[str, tuple[torch.Tensor
         enc_out = enc(*enc_in)
     enc_by = dict(zip(enc.output_names, enc_out))
     fp = FlowPoseStage(model)
-    camera = {"intrinsics": nominal_intrinsics(model.cfg), "init_pose": torch.eye(4)[None]}
+    camera = {"intrinsics": nominal_intrinsics(model.cfg), "init_pose": torch.eye(4)[None],
+              CLASSICAL_START_INPUT: torch.eye(4)[None]}
     if model.cfg.point_solver:
         camera.update(_solver_sample(model, h, w, g))
     flowpose = [camera[n] if n in camera else enc_by[n.replace("1_", "_").replace("2_", "_")] for n in fp.input_names]

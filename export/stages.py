@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from d3lvo_deploy.points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
+from d3lvo_deploy.points import CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT
 from models.d3lvo import D3LVO
 from models.point_solver import pyramid_input_names
 
@@ -78,6 +78,8 @@ def flowpose_output_names(model: D3LVO) -> list[str]:
     conf = [f"confidence_l{cfg.flow_levels[-1]}", "point_weights"] if cfg.point_solver else \
         [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
     start = ["start_next"] if cfg.point_solver and cfg.pt_select > 0 else []
+    if start and cfg.pt_classical_chain:
+        start.append(CLASSICAL_NEXT_OUTPUT)
     return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"] + start
 
 
@@ -127,7 +129,10 @@ class FlowPoseStage(nn.Module):
     def __init__(self, model: D3LVO, weighted: bool = False):
         super().__init__()
         self.model = model
-        self.input_names = flowpose_input_names(model) + ([CLASSICAL_INPUT] if weighted else [])
+        # the classical pose given, or (`pt_classical_chain`) where its solve starts
+        chain = splits_classical(model) and model.cfg.pt_classical_chain
+        self.input_names = flowpose_input_names(model) + ([CLASSICAL_INPUT] if weighted else
+                                                          [CLASSICAL_START_INPUT] if chain else [])
         self.output_names = flowpose_output_names(model)
 
     def forward(self, *tensors):
@@ -135,13 +140,13 @@ class FlowPoseStage(nn.Module):
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
         solver = None
         if self.model.cfg.point_solver:
-            names = solver_input_names(self.model) + ([CLASSICAL_INPUT] if CLASSICAL_INPUT in byname else [])
+            names = solver_input_names(self.model) + [n for n in (CLASSICAL_INPUT, CLASSICAL_START_INPUT) if n in byname]
             solver = {k: byname[k] for k in names}
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
                                    levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))
         extra = [out["point_weights"]] if "point_weights" in out else []
-        start = [out["start_next"]] if "start_next" in out else []
+        start = [out[n] for n in ("start_next", CLASSICAL_NEXT_OUTPUT) if n in out]
         return (*out["flows"], *out.get("confidence", []), *extra, out["poses"], out["weights"], out["pose"],
                 out["matrix"], *start)
 

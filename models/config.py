@@ -16,7 +16,7 @@ MAX_PYRAMID_LEVELS = 5
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
                "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained",
-               "pt_select_scan", "pt_select_scan_pass", "pt_select_share")
+               "pt_select_scan", "pt_select_scan_pass", "pt_select_share", "pt_classical_chain")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -177,6 +177,13 @@ class D3LVOConfig:
     # scene has nothing left to tell the motion by, and its gain is its own doubt
     # (`pose_points.distrusted_share`; the scan's pass is not capped). 1: off (docs/model-card.md)
     pt_select_share: float = 1.0
+    # with pt_select: the classical solve starts each pair from the previous classical pose (its own
+    # constant velocity, as `d3lvo run --method direct` does) instead of the weighted one's; where
+    # the classical pose is kept on every pair the run is the classical mode's. The solve creeps
+    # (docs/performance.md), so its pose depends on its start: started from the weighted chain, the
+    # classical pose kept on a static drive tracked worse than the classical mode's own (graph input
+    # `classical_start`, output `classical_next`; docs/model-card.md)
+    pt_classical_chain: bool = False
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -286,6 +293,8 @@ class D3LVOConfig:
                              f"would keep a weighted pose that fits the scan worse), not {self.pt_select_scan_pass!r}")
         if not (isinstance(self.pt_select_share, (int, float)) and 0 < self.pt_select_share <= 1):
             raise ValueError(f"pt_select_share must be a share in (0, 1] (1: off), not {self.pt_select_share!r}")
+        if not isinstance(self.pt_classical_chain, bool):
+            raise ValueError(f"pt_classical_chain must be true or false, not {self.pt_classical_chain!r}")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from d3lvo_deploy.points import CLASSICAL_INPUT, SCAN_DEPTH_INPUT
+from d3lvo_deploy.points import CLASSICAL_INPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT
 
 from . import gauss_newton as gn
 from .config import D3LVOConfig
@@ -197,7 +197,9 @@ class PointPose(nn.Module):
                 classical = solver[CLASSICAL_INPUT]
             else:
                 two = lambda x: interleave(x, x)  # noqa: E731
-                both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), two(init),
+                # `pt_classical_chain`: the classical solve from its own previous pose where given
+                starts = interleave(init, solver.get(CLASSICAL_START_INPUT, init))
+                both = solve(grey1, stack2, two(points), interleave(weight, mask), two(K_image), starts,
                              self.settings, mask=two(mask), depth2=solver.get(SCAN_DEPTH_INPUT))
                 levels, classical = [L[0::2] for L in both], both[-1][1::2]
             gain = consensus_gain(levels[-1], classical, grey1[0], stack2[0], points, weight, K_image)

@@ -10,7 +10,7 @@ import torch
 from d3lvo_deploy.cold_start import ColdStartConfig
 from d3lvo_deploy.geometry import accumulate, change_frame
 from d3lvo_deploy.odometry import cold_start_motion
-from d3lvo_deploy.points import solver_feeds
+from d3lvo_deploy.points import CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, solver_feeds
 from d3lvo_deploy.sequence import KittiSequence
 
 from .data import FrameLoader
@@ -31,6 +31,7 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
                      device=dev)
     prev = solver_prev = None
     motion = torch.eye(4, device=dev)[None]  # image_2 motion of the previous pair: the GN head's start
+    classical = None  # `pt_classical_chain`: the previous classical pose, the classical solve's start
     rel = []
     for i in range(start, end):
         rgb = torch.from_numpy(loader.rgb(i)).permute(2, 0, 1)[None].to(dev)
@@ -46,9 +47,12 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
             if solver is not None and not rel and len(solver_prev.points):  # the first pair: no previous motion
                 A = cold_start_motion(solver_prev, solver_cur, seq.calib.K2, model.cfg.to_dict(), cold_start)
                 motion = torch.tensor(A, dtype=torch.float32, device=dev)[None]
+            if solver is not None and model.cfg.pt_classical_chain:
+                solver[CLASSICAL_START_INPUT] = motion if classical is None else classical
             out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
             A2 = out["matrix"][0].double().cpu().numpy()
             motion = out.get("start_next", out["matrix"])  # the next pair's start (`pt_select`: the weighted pose)
+            classical = out.get(CLASSICAL_NEXT_OUTPUT)
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))
         prev, solver_prev = cur, solver_cur
     return accumulate(np.array(rel).reshape(-1, 4, 4))

@@ -208,7 +208,9 @@ def test_the_restarts_scan_check_batched_as_the_graph_batches_it():
 def test_the_next_start_is_the_weighted_solve_and_the_kept_pose_the_classical_one(monkeypatch):
     """PointPose with `pt_select`: of its one batch of two solves, `start_next` is the solve with the
     confidence's weights and, where the selection keeps the classical pose (a threshold of 0.999
-    that no gain passes), the final pose is the solve with every weight 1, each as solved alone."""
+    that no gain passes), the final pose is the solve with every weight 1, each as solved alone.
+    Given its own start (`classical_start`, `pt_classical_chain`), the classical solve starts there
+    and the weighted one still from `init`: with three steps a level, the start shows in the pose."""
     from models.config import D3LVOConfig
     from models.point_solver import pyramid_input_names
     from models.pose_points import PointPose
@@ -229,6 +231,12 @@ def test_the_next_start_is_the_weighted_solve_and_the_kept_pose_the_classical_on
     assert np.abs(weighted - classical).max() > 1e-6  # the weights matter
     np.testing.assert_allclose(out["start_next"].numpy(), weighted.numpy(), atol=1e-9)
     np.testing.assert_allclose(out["level_matrices"][-1].numpy(), classical.numpy(), atol=1e-9)
+    own = _t(make_se3(axis_angle_to_rot([0.0, 0.02, 0.0]), [0.05, 0.0, 0.5]))[None]
+    out = pp(None, None, None, None, None, None, K * 0.5, init, {**solver, "classical_start": own})
+    from_own = solve(grey1, stack2, pts, mask, K, own, pp.settings, mask=mask)[-1]
+    assert np.abs(from_own - classical).max() > 1e-5  # the start shows after three steps a level
+    np.testing.assert_allclose(out["start_next"].numpy(), weighted.numpy(), atol=1e-9)
+    np.testing.assert_allclose(out["level_matrices"][-1].numpy(), from_own.numpy(), atol=1e-9)
 
 
 def test_zero_weight_points_are_ignored():
@@ -753,7 +761,8 @@ def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(scan_judge_model,
     """With `pt_select_scan_pass` (`scan_judge_model`), the flow+pose graphs take frame t's scan
     and the classical solve does not; the torch-free runtime, which solves the classical mode
     beside the network, gives torch's trajectory under the same settings, which differs from the
-    classical pose kept always."""
+    classical pose kept always. Kept always, the classical pose started from the previous classical
+    one (`pt_classical_chain`) is the numpy tracker's trajectory (`--method direct`)."""
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.poses import read_poses
@@ -773,6 +782,10 @@ def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(scan_judge_model,
     est = read_poses(tmp_path / "p.txt").poses
     np.testing.assert_allclose(est[:, :3, 3], torch_traj[:, :3, 3], atol=1e-4)
     assert np.abs(torch_traj[:, :3, 3] - classical[:, :3, 3]).max() > 1e-4
+    seq = KittiSequence.open(small_synth)
+    tracker = DirectOdometry(seq.calib, DirectConfig.of_model(ck["config"].to_dict()))
+    direct = np.array([tracker.step(seq.image(i), seq.scan(i)) for i in range(len(seq))])
+    np.testing.assert_allclose(classical[:, :3, 3], direct[:, :3, 3], atol=2e-5)
 
 
 def test_runtime_feeds_frame_ts_own_scan():
@@ -1200,11 +1213,14 @@ def test_bad_solver_settings_are_one_clear_error():
     for bad, words in (("pt_stop=abc", "pt_stop takes a finite number"), ("pt_stop=nan", "pt_stop takes a finite"),
                        ("pt_iters=a,b", "pt_iters takes whole numbers separated by commas"),
                        ("gn_iters=2.5", "gn_iters takes a whole number"),
-                       ("pt_affine=3", "pt_affine takes true or false")):
+                       ("pt_affine=3", "pt_affine takes true or false"),
+                       ("pt_classical_chain=yes", "pt_classical_chain takes true or false")):
         with pytest.raises(D3LVOInputError, match=words):
             solver_settings([bad])
     with pytest.raises(ValueError, match="pt_gate must be in"):
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_gate=-0.5"]))
+    with pytest.raises(ValueError, match="pt_classical_chain must be true or false"):
+        D3LVOConfig.small(pose_head="points", pt_classical_chain=1)
 
 
 def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, tmp_path):

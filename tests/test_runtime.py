@@ -188,10 +188,11 @@ def test_resume_after_partial_run_is_identical(small_model, small_synth, tmp_pat
 
 
 def test_resume_restores_the_start_a_graph_keeps_of_its_own(small_synth, tmp_path):
-    """The bundled graph starts each pair from its weighted pose (`start_next`), which the pose it
-    keeps need not be, so the poses alone cannot tell a resumed run where to start: the run saves
-    each frame's start beside the poses (the same as the API's `Odometry.motion2` after that
-    frame), and a resumed run reads it back and writes what the uninterrupted run wrote. Without
+    """The bundled graph starts each pair's weighted solve from its weighted pose (`start_next`)
+    and its classical solve from its classical pose (`classical_next`), which the pose it keeps
+    need not be, so the poses alone cannot tell a resumed run where to start: the run saves each
+    frame's two starts beside the poses (the same as the API's `Odometry.start_state()` after that
+    frame), and a resumed run reads them back and writes what the uninterrupted run wrote. Without
     that file it warns and still finishes."""
     from d3lvo_deploy.bundled import bundled_model_dir
     from d3lvo_deploy.pipeline import start_file
@@ -199,14 +200,23 @@ def test_resume_restores_the_start_a_graph_keeps_of_its_own(small_synth, tmp_pat
     model = bundled_model_dir()
     seq = KittiSequence.open(small_synth)
     odo = Odometry(model, seq.calib)
-    assert odo.keeps_own_start
+    assert odo.keeps_own_start and odo.chains_classical
     odo.keep_outputs = True
+    fed, run = [], odo.model.run  # where each pair's classical solve started, in whichever graph solved it
+    odo.model.run = lambda stage, feeds: (fed.append(feeds.get("classical_start", feeds.get("init_pose")))
+                                          if stage in ("flowpose", "classical") and "classical_pose" not in feeds
+                                          else None, run(stage, feeds))[1]
     starts = []
     for i in range(len(seq)):
         odo.step(seq.image(i), seq.scan(i))
         if i:  # the runtime starts the next pair where the graph says, not from the kept pose's motion
-            np.testing.assert_allclose(odo.motion2, odo.last["flowpose"]["start_next"][0], atol=1e-7)
-        starts.append(odo.motion2[:3].reshape(-1))
+            out = odo.last["flowpose"]
+            np.testing.assert_allclose(odo.start_state(), np.stack([out["start_next"][0], out["classical_next"][0]]),
+                                       atol=1e-7)
+            if i > 1:
+                np.testing.assert_allclose(fed[-1][0][:3], starts[-1].reshape(2, 3, 4)[1], atol=1e-7)
+        starts.append(odo.start_state()[:, :3].reshape(-1))
+    assert len(fed) == len(seq) - 1
     full, part = tmp_path / "full.txt", tmp_path / "part.txt"
     run_sequence(seq, model, RunConfig(out=full))
     saved = np.loadtxt(start_file(full))
