@@ -182,7 +182,8 @@ class D3LVOConfig:
     # the classical pose is kept on every pair the run is the classical mode's. The solve creeps
     # (docs/performance.md), so its pose depends on its start: started from the weighted chain, the
     # classical pose kept on a static drive tracked worse than the classical mode's own (graph input
-    # `classical_start`, output `classical_next`; docs/model-card.md)
+    # `classical_start`, output `classical_next`). Off in the bundled model: no static gain, some
+    # traffic lost (docs/model-card.md)
     pt_classical_chain: bool = False
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse

@@ -513,3 +513,12 @@ for d in "$OUT"/data/static_2?? "$OUT"/data/heldout_?? "$OUT"/data/traffic_3?? "
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/cap_$(basename "$d").txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/direct_$(basename "$d").txt" --overwrite
 done
+# The classical solve from its own previous pose (pt_classical_chain), on the validation drives
+# beside the shipped model without it, then on every held-out drive (docs/model-card.md): not shipped
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/chain" --overwrite --set pt_classical_chain=true
+for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/static_2?? "$OUT"/data/heldout_?? \
+         "$OUT"/data/traffic_3??; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 2 --out "$OUT/eval/cap2_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --onnx "$OUT/chain" --backend onnxruntime --threads 2 --out "$OUT/eval/chain_$(basename "$d").txt" \
+    --overwrite
+done

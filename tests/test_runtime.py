@@ -187,20 +187,22 @@ def test_resume_after_partial_run_is_identical(small_model, small_synth, tmp_pat
     assert (tmp_path / "part.txt").read_text() == (tmp_path / "full.txt").read_text()
 
 
-def test_resume_restores_the_start_a_graph_keeps_of_its_own(small_synth, tmp_path):
-    """The bundled graph starts each pair's weighted solve from its weighted pose (`start_next`)
-    and its classical solve from its classical pose (`classical_next`), which the pose it keeps
-    need not be, so the poses alone cannot tell a resumed run where to start: the run saves each
-    frame's two starts beside the poses (the same as the API's `Odometry.start_state()` after that
-    frame), and a resumed run reads them back and writes what the uninterrupted run wrote. Without
-    that file it warns and still finishes."""
+@pytest.mark.parametrize("which", ["bundled", "chained"])
+def test_resume_restores_the_start_a_graph_keeps_of_its_own(which, small_synth, tmp_path, request):
+    """The bundled graph starts each pair from its weighted pose (`start_next`), which the pose it
+    keeps need not be, so the poses alone cannot tell a resumed run where to start: the run saves
+    each frame's start beside the poses (the same as the API's `Odometry.start_state()` after that
+    frame), and a resumed run reads it back and writes what the uninterrupted run wrote. Without
+    that file it warns and still finishes. A graph whose classical solve starts from its own
+    previous pose (`pt_classical_chain`, `scan_judge_model`) is fed that pose (`classical_next`)
+    and saves both starts on each line."""
     from d3lvo_deploy.bundled import bundled_model_dir
     from d3lvo_deploy.pipeline import start_file
 
-    model = bundled_model_dir()
+    model = bundled_model_dir() if which == "bundled" else request.getfixturevalue("scan_judge_model")[1]
     seq = KittiSequence.open(small_synth)
     odo = Odometry(model, seq.calib)
-    assert odo.keeps_own_start and odo.chains_classical
+    assert odo.keeps_own_start and odo.chains_classical == (which == "chained")
     odo.keep_outputs = True
     fed, run = [], odo.model.run  # where each pair's classical solve started, in whichever graph solved it
     odo.model.run = lambda stage, feeds: (fed.append(feeds.get("classical_start", feeds.get("init_pose")))
@@ -211,10 +213,10 @@ def test_resume_restores_the_start_a_graph_keeps_of_its_own(small_synth, tmp_pat
         odo.step(seq.image(i), seq.scan(i))
         if i:  # the runtime starts the next pair where the graph says, not from the kept pose's motion
             out = odo.last["flowpose"]
-            np.testing.assert_allclose(odo.start_state(), np.stack([out["start_next"][0], out["classical_next"][0]]),
-                                       atol=1e-7)
-            if i > 1:
-                np.testing.assert_allclose(fed[-1][0][:3], starts[-1].reshape(2, 3, 4)[1], atol=1e-7)
+            want = [out["start_next"][0]] + ([out["classical_next"][0]] if odo.chains_classical else [])
+            np.testing.assert_allclose(odo.start_state(), np.stack(want), atol=1e-7)
+            if i > 1:  # the classical solve started where the previous pair left it
+                np.testing.assert_allclose(fed[-1][0][:3], starts[-1].reshape(-1, 3, 4)[-1], atol=1e-7)
         starts.append(odo.start_state()[:, :3].reshape(-1))
     assert len(fed) == len(seq) - 1
     full, part = tmp_path / "full.txt", tmp_path / "part.txt"
