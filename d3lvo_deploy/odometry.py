@@ -416,8 +416,8 @@ class Odometry:
             self.cold = False
         if start is not None:
             self.motion2 = start[0]
-            if len(start) > 1:
-                self.motion2_classical = start[1]
+        # without a saved classical start, the classical solve starts where the weighted one does
+        self.motion2_classical = start[1] if start is not None and len(start) > 1 else None
         self.frames += 1
 
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:

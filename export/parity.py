@@ -20,7 +20,8 @@ from d3lvo_deploy.geometry import relative, rotation_angle_precise
 from d3lvo_deploy.bundled import find_real_frames
 from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
-from d3lvo_deploy.points import SCAN_DEPTH_INPUT, SolverFrame, point_config, solver_feeds
+from d3lvo_deploy.points import (CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame, point_config,
+                                 solver_feeds)
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import SOLVER_KEYS, D3LVOConfig
@@ -127,6 +128,15 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     chain_t, chain_o, chain_f = [], [], []
     # each side starts the Gauss-Newton head from its own previous motion, as the runtime does
     motion_t = motion_o = motion_f = np.eye(4)  # each side's next start (`start_next` where the graph has it)
+    # with `pt_classical_chain`, each side's classical solve's start: its previous `classical_next`
+    chained = cfg.point_solver and cfg.pt_select > 0 and cfg.pt_classical_chain
+    classical_t = classical_o = classical_f = None
+
+    def with_classical(feeds: dict, motion: np.ndarray, classical: np.ndarray | None) -> dict:
+        if chained:
+            feeds[CLASSICAL_START_INPUT] = np.asarray(motion if classical is None else classical,
+                                                      np.float32).reshape(1, 4, 4)
+        return feeds
     K = torch.tensor([[pre.K[0, 0], pre.K[1, 1], pre.K[0, 2], pre.K[1, 2]]], dtype=torch.float32)
     raw_prev = None
     geometric = ort_model.geometric
@@ -167,6 +177,8 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             if feeds is not None:
                 cam_t.update(feeds)
                 cam_o.update(feeds)
+                with_classical(cam_t, motion_t, classical_t)
+                with_classical(cam_o, motion_o, classical_o)
             fp_t = _flowpose_outputs(model, prev_t, enc_t, cam_t)
             fp_same = ort_model.flow_pose(prev_t, enc_t, cam_t)
             for k in fp_t:
@@ -174,14 +186,20 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             motion_t = fp_t.get("start_next", fp_t["matrix"])[0].astype(np.float64)
             out_o = ort_model.flow_pose(prev_o, enc_o, cam_o)
             motion_o = out_o.get("start_next", out_o["matrix"])[0].astype(np.float64)
+            if chained:
+                classical_t = fp_t[CLASSICAL_NEXT_OUTPUT][0].astype(np.float64)
+                classical_o = out_o[CLASSICAL_NEXT_OUTPUT][0].astype(np.float64)
             chain_t.append(fp_t["matrix"][0].astype(np.float64))
             chain_o.append(out_o["matrix"][0].astype(np.float64))
         raw = _forward_inputs(pre, seq, i, cfg)
         if raw_prev is not None:
             init = torch.from_numpy(motion_f.astype(np.float32))[None] if geometric else None
-            solver = None if feeds is None else {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in feeds.items()}
+            solver = None if feeds is None else {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in
+                                                 with_classical(dict(feeds), motion_f, classical_f).items()}
             fwd = model(raw_prev[0], raw[0], raw_prev[1], raw[1], K if geometric else None, init, solver)
             motion_f = fwd.get("start_next", fwd["matrix"])[0].double().numpy()
+            if chained:
+                classical_f = fwd[CLASSICAL_NEXT_OUTPUT][0].double().numpy()
             # the engine's flows and confidences against forward's, output by output
             for lvl, f in zip(cfg.flow_levels, fwd["flows"]):
                 diff("vs_forward", f"flow_l{lvl}").update(f.numpy(), out_o[f"flow_l{lvl}"])

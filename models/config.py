@@ -296,6 +296,9 @@ class D3LVOConfig:
             raise ValueError(f"pt_select_share must be a share in (0, 1] (1: off), not {self.pt_select_share!r}")
         if not isinstance(self.pt_classical_chain, bool):
             raise ValueError(f"pt_classical_chain must be true or false, not {self.pt_classical_chain!r}")
+        if self.pt_classical_chain and not (self.point_solver and self.pt_select > 0):
+            raise ValueError("pt_classical_chain needs a point solver that also solves its classical mode (pt_select "
+                             "above 0): without it there is no classical solve to start")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

@@ -163,8 +163,9 @@ def scan_judge_model(points_model, tmp_path_factory):
     (the photometric test never passes), without the restart, so that frame t's scan is read for
     the choice between the weighted and the classical pose alone; its last confidence layer
     redrawn at std 3, as in the rotation gate's test: an untrained confidence is the same on every
-    point, and the two solves then agree. Its classical solve is a stage of its own and starts from
-    the previous classical pose (`pt_classical_chain`), as the bundled model's."""
+    point, and the two solves then agree. Its classical solve is a stage of its own, as the bundled
+    model's, and starts from the previous classical pose (`pt_classical_chain`, which the bundled
+    model leaves off)."""
     from export.onnx_export import ExportConfig, export_checkpoint
     from models.checkpoint import build_model, load_checkpoint, save_checkpoint
     from models.d3lvo import D3LVO

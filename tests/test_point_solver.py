@@ -788,6 +788,17 @@ def test_scan_judge_graph_takes_frame_ts_scan_and_equals_torch(scan_judge_model,
     np.testing.assert_allclose(classical[:, :3, 3], direct[:, :3, 3], atol=2e-5)
 
 
+def test_parity_of_a_graph_that_chains_its_classical_solve(scan_judge_model, small_synth):
+    """`d3lvo parity` on a model whose classical solve starts from its own previous pose
+    (`scan_judge_model`): each side feeds its own `classical_next` back, and the chains agree."""
+    from export.parity import POSE_R_TOL, POSE_T_TOL, run_parity
+
+    rep = run_parity(*scan_judge_model, small_synth, frames=4)
+    assert rep.passed, rep.to_dict()
+    assert rep.stages["flowpose"]["classical_next"].max_abs < 1e-4
+    assert rep.chained_t_m <= POSE_T_TOL and rep.chained_r_deg <= POSE_R_TOL
+
+
 def test_runtime_feeds_frame_ts_own_scan():
     """Where the bundled graph checks the restart against the scan, the runtime makes each frame's
     LiDAR depth at the camera's size from its whole scan (the cull before it drops no return that
@@ -1031,19 +1042,22 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
                                                for i in range(2)]), atol=1e-5)
 
 
-def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(scan_judge_model, small_synth,
-                                                                               tmp_path):
+@pytest.mark.parametrize("which", ["scan_judge_model", "bundled"])
+def test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses(which, small_synth, tmp_path, request):
     """A model that chooses between its weighted and its classical pose (`pt_select`,
     `scan_judge_model`) is exported with the classical solve as a stage of its own. On two threads
     the runtime opens it and the flow+pose graph that takes its pose, not the batched graph, solves
     it on its helper thread while completion and encoder run (its time in `last_timing.beside`,
     outside the frame's total), and writes the poses the batched graph gives (the switch off), to
-    the bit on onnxruntime; on one thread it runs the batched graph."""
+    the bit on onnxruntime; on one thread it runs the batched graph. The same for the bundled model,
+    whose classical solve starts where the weighted one does (the fixture's from its own pose)."""
     from d3lvo_deploy.backends import SessionConfig
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.odometry import Odometry
 
-    model_dir = scan_judge_model[1]
+    from d3lvo_deploy.bundled import bundled_model_dir
+
+    model_dir = bundled_model_dir() if which == "bundled" else request.getfixturevalue(which)[1]
     assert {"classical", "flowpose_weighted"} <= set(load_manifest(model_dir)["stages"])
     import threading
 
@@ -1221,6 +1235,8 @@ def test_bad_solver_settings_are_one_clear_error():
         D3LVOConfig.small(pose_head="points", **solver_settings(["pt_gate=-0.5"]))
     with pytest.raises(ValueError, match="pt_classical_chain must be true or false"):
         D3LVOConfig.small(pose_head="points", pt_classical_chain=1)
+    with pytest.raises(ValueError, match="pt_classical_chain needs a point solver that also solves its classical"):
+        D3LVOConfig.small(pose_head="points", pt_classical_chain=True)  # pt_select 0: no classical solve
 
 
 def test_int8_export_keeps_the_point_solver_in_fp32(points_model, small_synth, tmp_path):
