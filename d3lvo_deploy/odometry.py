@@ -24,8 +24,8 @@ from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, is_rigid, relative
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
-from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame, finest_level, point_config, solver_feeds,
-                     textured_points)
+from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
+                     finest_level, point_config, solver_feeds, textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
 STAGES = ("project", "completion", "encoder", "flowpose")

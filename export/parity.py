@@ -20,8 +20,8 @@ from d3lvo_deploy.geometry import relative, rotation_angle_precise
 from d3lvo_deploy.bundled import find_real_frames
 from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
-from d3lvo_deploy.points import (CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame, point_config,
-                                 solver_feeds)
+from d3lvo_deploy.points import (CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
+                                 point_config, solver_feeds)
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import SOLVER_KEYS, D3LVOConfig

@@ -140,7 +140,8 @@ class FlowPoseStage(nn.Module):
         levels = lambda prefix: [byname.get(f"{prefix}_l{lvl}") for lvl in range(4)]  # noqa: E731
         solver = None
         if self.model.cfg.point_solver:
-            names = solver_input_names(self.model) + [n for n in (CLASSICAL_INPUT, CLASSICAL_START_INPUT) if n in byname]
+            given = [n for n in (CLASSICAL_INPUT, CLASSICAL_START_INPUT) if n in byname]
+            names = solver_input_names(self.model) + given
             solver = {k: byname[k] for k in names}
         out = self.model.flow_pose(levels("feat1"), levels("feat2"), levels("invdepth1"), levels("grey1"),
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
