@@ -129,7 +129,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     # each side starts the Gauss-Newton head from its own previous motion, as the runtime does
     motion_t = motion_o = motion_f = np.eye(4)  # each side's next start (`start_next` where the graph has it)
     # with `pt_classical_chain`, each side's classical solve's start: its previous `classical_next`
-    chained = cfg.point_solver and cfg.pt_select > 0 and cfg.pt_classical_chain
+    chained = cfg.pt_classical_chain
     classical_t = classical_o = classical_f = None
 
     def with_classical(feeds: dict, motion: np.ndarray, classical: np.ndarray | None) -> dict:

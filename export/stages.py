@@ -78,7 +78,7 @@ def flowpose_output_names(model: D3LVO) -> list[str]:
     conf = [f"confidence_l{cfg.flow_levels[-1]}", "point_weights"] if cfg.point_solver else \
         [f"confidence_l{lvl}" for lvl in cfg.gn_levels]
     start = ["start_next"] if cfg.point_solver and cfg.pt_select > 0 else []
-    if start and cfg.pt_classical_chain:
+    if cfg.pt_classical_chain:  # the config allows it only beside `start_next`
         start.append(CLASSICAL_NEXT_OUTPUT)
     return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"] + start
 
@@ -130,9 +130,9 @@ class FlowPoseStage(nn.Module):
         super().__init__()
         self.model = model
         # the classical pose given, or (`pt_classical_chain`) where its solve starts
-        chain = splits_classical(model) and model.cfg.pt_classical_chain
         self.input_names = flowpose_input_names(model) + ([CLASSICAL_INPUT] if weighted else
-                                                          [CLASSICAL_START_INPUT] if chain else [])
+                                                          [CLASSICAL_START_INPUT] if model.cfg.pt_classical_chain
+                                                          else [])
         self.output_names = flowpose_output_names(model)
 
     def forward(self, *tensors):

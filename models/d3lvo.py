@@ -146,7 +146,7 @@ class D3LVO(nn.Module):
             out.update({"poses": levels, "weights": weights, "pose": final, "matrix": pose_to_matrix(final)})
             if "start_next" in res:  # `pt_select`: the weighted pose, the next pair's start
                 out["start_next"] = pose_to_matrix(normalise_pose(gn.matrix_to_pose(res["start_next"])))
-            if self.cfg.pt_classical_chain and "classical" in res:  # the classical solve's next start
+            if self.cfg.pt_classical_chain:  # the classical solve's next start
                 out["classical_next"] = pose_to_matrix(normalise_pose(gn.matrix_to_pose(res["classical"])))
             return out
         if self.gn_pose is None:
