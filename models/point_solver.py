@@ -380,6 +380,14 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     its (B,C,H,W) stack); weight (B,N) as `solve`'s.
     Something that moves pulls the classical pose off the static points, and they say so; a
     confidence that doubts static points (a false detection) leaves them explained by both."""
+    gains, trusted = msac_gains(A, A_classical, grey1, grey2, points, weight, K, cap)
+    return (gains * trusted).sum(-1) / trusted.sum(-1).clamp(min=1.0)
+
+
+def msac_gains(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tensor, grey2: torch.Tensor,
+               points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor, cap: float = 2.0) -> tuple:
+    """`consensus_gain` point by point: each point's MSAC cost under A_classical minus under A (B,N),
+    and the points it averages over (B,N, 1 where trusted and seen under both poses)."""
     ref = sample_at(grey1, project(points, K)[0], inside=True)[:, 0]  # frame t-1's own points
     M, M_c = gn.invert(A), gn.invert(A_classical)
     r, seen = residuals_at(M[:, :3, :3], M[:, :3, 3:].transpose(1, 2), points, ref, grey2, K)
@@ -389,7 +397,7 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     limit = (cap * sigma).clamp(min=1e-6) ** 2  # (B,1)
     trusted = ok * (weight >= 0.5).to(ref.dtype)
     cost = lambda x: torch.minimum(x * x / limit, torch.ones_like(x))  # noqa: E731
-    return ((cost(r_c) - cost(r)) * trusted).sum(-1) / trusted.sum(-1).clamp(min=1.0)
+    return cost(r_c) - cost(r), trusted
 
 
 def rotations_differ(A: torch.Tensor, B: torch.Tensor, degrees: float) -> torch.Tensor:

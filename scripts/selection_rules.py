@@ -21,9 +21,12 @@ classical pose leaves something unexplained). And frame t's own LiDAR scan as a 
 weighted pose kept only where it fits the scan at most so much worse than the classical one, or
 also wherever it fits it much better (where the checkpoint's graph reads that scan). `--quick`
 leaves out the rules that need one more solve or pass of the network per pair (the gain held out,
-the confidence against the classical pose). `shipped` in a rule's name: the photometric test at
-the shipped thresholds (`pt_select` 0.005, `pt_select_rotation` 0.05), without the cap and the
-scan's pass unless the name says so.
+the confidence against the classical pose). Last, what ships (the cap, or the scan's pass), its
+photometric side asked for more: a test passed on M of the last K pairs, a share distrusted on
+average over the last K pairs, or a gain that stands out from its own spread over the trusted
+points (its mean in standard errors of that mean, `gain_significance`). `shipped` in a rule's
+name: the photometric test at the shipped thresholds (`pt_select` 0.005, `pt_select_rotation`
+0.05), without the cap and the scan's pass unless the name says so; `ships`: what ships.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from d3lvo_deploy.sequence import KittiSequence
 from d3lvo_deploy.synth.generator import drive_traffic
 from models import pose_points
 from models.checkpoint import build_model, load_checkpoint
-from models.point_solver import NO_EVIDENCE, consensus_gain, solve
+from models.point_solver import NO_EVIDENCE, consensus_gain, msac_gains, solve
 from models.predict import predict_sequence
 
 GAINS = (0.003, 0.005, 0.0075, 0.01, 0.02)
@@ -56,6 +59,9 @@ HELD_OUT = (0.0, 0.002, 0.005, 0.01)
 UNEXPLAINED = (0.05, 0.1, 0.15, 0.2, 0.3)  # the least share distrusted against the classical pose
 SCAN_VETO = (1.0, 1.1, 1.25, 1.5)  # the weighted pose's scan error at most this times the classical one's
 SCAN_PASS = (0.5, 0.7, 0.85)  # ... or kept wherever its scan error is below this times the classical one's
+SIGNIFICANCE = (2, 3, 5, 8)  # the gain's mean over the trusted points in standard errors of that mean
+RECENT = ((3, 2), (5, 2), (5, 3), (10, 2))  # (K, M): the photometric test passed on M of the last K pairs
+RECENT_SHARE = ((5, 0.3), (10, 0.3), (10, 0.35))  # (K, s): the network distrusted s on average over K pairs
 
 
 def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
@@ -81,6 +87,19 @@ def held_out_gain(pose: pose_points.PointPose, init: torch.Tensor, solver: dict,
                                     weight * halves[1 - i], K)[0]) for i in (0, 1))
 
 
+def gain_significance(pose: pose_points.PointPose, A: torch.Tensor, C: torch.Tensor, solver: dict,
+                      weight: torch.Tensor) -> float:
+    """The consensus gain in standard errors of its mean over the trusted points (batch row 0): a
+    mover pulls the classical pose off every static point alike, where a weighted pose that merely
+    fits its own points gains on some and loses on others."""
+    grey1, stack2 = pose.pyramids(solver)
+    gains, trusted = msac_gains(A, C, grey1[0], stack2[0], solver["points1"], weight, solver["image_intrinsics"])
+    g = gains[0][trusted[0] > 0].double()
+    if len(g) < 3 or float(g.std()) == 0.0:
+        return 0.0
+    return float(g.mean() / (g.std() / len(g) ** 0.5))
+
+
 def scan_errors(A: torch.Tensor, C: torch.Tensor, solver: dict, weight: torch.Tensor) -> dict:
     """`PointPose.scan_errors` of both poses (batch row 0): over the points the network trusts, as
     the graph's judge counts them, and over every point of the list."""
@@ -103,7 +122,8 @@ def record_pairs(model, drive: str, quick: bool = False) -> list[dict]:
         if "consensus_gain" in out:
             weight, solver = out["point_weights"], args[-1]
             pair = dict(gain=float(out["consensus_gain"][0]), W=out["start_next"][0].double().numpy(),
-                        C=out["classical"][0].double().numpy(), share=distrusted_share(weight, solver["point_mask1"]))
+                        C=out["classical"][0].double().numpy(), share=distrusted_share(weight, solver["point_mask1"]),
+                        significance=gain_significance(self, out["start_next"], out["classical"], solver, weight))
             if SCAN_DEPTH_INPUT in solver:  # the checkpoint's graph reads frame t's scan
                 pair.update(scan_errors(out["start_next"], out["classical"], solver, weight))
             if not quick:
@@ -197,6 +217,22 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
         rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
                    (shipped(ps, i) and fits(ps, i, n, v, False) is not False) or bool(fits(ps, i, n, r, True)))
                   for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]
+    if all("scan_W" in p for ps in pairs.values() for p in ps):
+        # what ships (the photometric test with the cap at 0.7, or the scan's pass at 0.7), the
+        # photometric side asked for more: several pairs read together (vehicles stay in view for a
+        # while, a false detection comes and goes), or a gain that stands out from its own spread
+        capped = lambda ps, i: shipped(ps, i) and ps[i]["share"] <= 0.7  # noqa: E731
+        last = lambda i, k: range(max(0, i - k + 1), i + 1)  # noqa: E731
+
+        def ships(extra):
+            return lambda ps, i: (capped(ps, i) and extra(ps, i)) or bool(fits(ps, i, "scan", 0.7, True))
+
+        rules += [(f"ships, and passed on {m} of the last {k} pairs", ships(lambda ps, i, k=k, m=m:
+                   sum(capped(ps, j) for j in last(i, k)) >= m)) for k, m in RECENT]
+        rules += [(f"ships, and distrusted {f} over the last {k} pairs", ships(lambda ps, i, k=k, f=f:
+                   np.mean([ps[j]["share"] for j in last(i, k)]) >= f)) for k, f in RECENT_SHARE]
+        rules += [(f"ships, and its gain above {z} standard errors", ships(lambda ps, i, z=z:
+                   ps[i]["significance"] > z)) for z in SIGNIFICANCE]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
         scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
