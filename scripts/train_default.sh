@@ -522,3 +522,16 @@ for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/static_2??
   "$D3LVO" run "$d" --onnx "$OUT/chain" --backend onnxruntime --threads 2 --out "$OUT/eval/chain_$(basename "$d").txt" \
     --overwrite
 done
+# Sixteen more static held-out drives, rendered last, after every setting was fixed, and scored once
+# (docs/evaluation.md, "Sixteen more static held-out drives")
+static_drives "242 09 150" "243 10 50" "244 09 300" "245 10 250" "246 09 450" "247 10 350" "248 09 600" \
+  "249 10 450" "250 09 750" "251 10 550" "252 09 950" "253 10 650" "254 09 1150" "255 10 750" "256 09 1350" \
+  "257 10 850"
+for s in $(seq 242 257); do
+  "$D3LVO" run "$OUT/data/static_$s" --backend onnxruntime --threads 2 --out "$OUT/eval/more_default_static_$s.txt" \
+    --overwrite
+  "$D3LVO" run "$OUT/data/static_$s" --method direct --out "$OUT/eval/more_direct_static_$s.txt" --overwrite
+done
+# The selection read over several pairs, or by how far its gain stands out from its spread, on the
+# twenty-four validation drives (docs/model-card.md): none ships
+.venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
