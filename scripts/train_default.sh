@@ -522,16 +522,25 @@ for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static* "$OUT"/data/static_2??
   "$D3LVO" run "$d" --onnx "$OUT/chain" --backend onnxruntime --threads 2 --out "$OUT/eval/chain_$(basename "$d").txt" \
     --overwrite
 done
-# Sixteen more static held-out drives, rendered last, after every setting was fixed, and scored once
-# (docs/evaluation.md, "Sixteen more static held-out drives")
+# Sixteen more static held-out drives and eight with traffic, rendered last, after every setting was
+# fixed, and scored once (docs/evaluation.md, "Twenty-four more held-out drives")
 static_drives "242 09 150" "243 10 50" "244 09 300" "245 10 250" "246 09 450" "247 10 350" "248 09 600" \
   "249 10 450" "250 09 750" "251 10 550" "252 09 950" "253 10 650" "254 09 1150" "255 10 750" "256 09 1350" \
   "257 10 850"
-for s in $(seq 242 257); do
-  "$D3LVO" run "$OUT/data/static_$s" --backend onnxruntime --threads 2 --out "$OUT/eval/more_default_static_$s.txt" \
-    --overwrite
-  "$D3LVO" run "$OUT/data/static_$s" --method direct --out "$OUT/eval/more_direct_static_$s.txt" --overwrite
+drive traffic_324 --frames 200 --seed 324 --motion-from "$GT/09.txt" --motion-start 450 --traffic 3
+drive traffic_325 --frames 200 --seed 325 --motion-from "$GT/10.txt" --motion-start 250 --traffic 5
+drive traffic_326 --frames 200 --seed 326 --motion-from "$GT/09.txt" --motion-start 750 --traffic 7
+drive traffic_327 --frames 200 --seed 327 --motion-from "$GT/10.txt" --motion-start 450 --traffic 9
+drive traffic_328 --frames 200 --seed 328 --motion-from "$GT/09.txt" --motion-start 1000 --traffic 4
+drive traffic_329 --frames 200 --seed 329 --motion-from "$GT/10.txt" --motion-start 650 --traffic 6
+drive traffic_330 --frames 200 --seed 330 --motion-from "$GT/09.txt" --motion-start 1250 --traffic 8
+drive traffic_331 --frames 200 --seed 331 --motion-from "$GT/10.txt" --motion-start 850 --traffic 10
+for d in "$OUT"/data/static_24[2-9] "$OUT"/data/static_25[0-7] "$OUT"/data/traffic_32[4-9] "$OUT"/data/traffic_33[01]; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 2 --out "$OUT/eval/more_default_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --method direct --out "$OUT/eval/more_direct_$(basename "$d").txt" --overwrite
 done
+.venv/bin/python -m models.pair_eval d3lvo_deploy/default_model/default.pt "$OUT"/data/traffic_32[4-9] \
+  "$OUT"/data/traffic_33[01] --pairs 199
 # The selection read over several pairs, or by how far its gain stands out from its spread, on the
 # twenty-four validation drives (docs/model-card.md): none ships
 .venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
