@@ -384,6 +384,7 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
     return (gains * trusted).sum(-1) / trusted.sum(-1).clamp(min=1.0)
 
 
+@full_precision
 def msac_gains(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tensor, grey2: torch.Tensor,
                points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor, cap: float = 2.0) -> tuple:
     """`consensus_gain` point by point: each point's MSAC cost under A_classical minus under A (B,N),

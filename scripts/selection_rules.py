@@ -7,7 +7,8 @@ classical solve's poses and the consensus gain. Each pair starts from the weight
 kept, so every rule's trajectory is the recorded poses chosen pair by pair: the grid below is
 scored without running the network again. Prints, per rule, each drive's t_rel % (ATE m, marked
 `ate`, for drives under 100 m), and the sums the choice reads: on static drives the difference
-to the classical pose kept always, on drives with traffic (a `synth.json` with traffic above 0)
+to the classical pose kept always and on how many of their pairs the rule keeps the weighted
+pose, on drives with traffic (a `synth.json` with traffic above 0)
 the mean and the smallest reduction against it. Beside the grid, at the shipped thresholds, three
 more rules: a cap on the share of frame t-1's points the network distrusts (`pt_select_share`,
 which ships at 0.7 with the scan's pass), the test passed on the previous pair too (a mover stays
@@ -239,8 +240,9 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
                   for d in drives}
         static = [scores[d][0] - classical[d] for d in drives if not info[d].traffic]
         cut = [1 - scores[d][0] / classical[d] for d in drives if info[d].traffic]
+        kept = [keep(pairs[d], i) for d in drives if not info[d].traffic for i in range(len(pairs[d]))]
         summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
-                  f"{sum(x < -1e-4 for x in static)}" if static else ""
+                  f"{sum(x < -1e-4 for x in static)}, weighted kept on {sum(kept)} of {len(kept)} pairs" if static else ""
         if cut:
             summary += f"; traffic: cut mean {100 * np.mean(cut):.1f} %, smallest {100 * min(cut):.1f} %"
         print(f"{name:48s} {summary} | " + " ".join(f"{s:.3f}{unit}" for s, unit in scores.values()), flush=True)
