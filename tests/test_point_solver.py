@@ -22,7 +22,7 @@ from d3lvo_deploy.points import (PointConfig, gradients, grey_image, pad_points,
 from d3lvo_deploy.sequence import KittiSequence  # noqa: E402
 from models.gauss_newton import gauss_jordan, so3_exp_small  # noqa: E402
 from models import gauss_newton as gn  # noqa: E402
-from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, lidar_depth_error,  # noqa: E402
+from models.point_solver import (SolverSettings, consensus_gain, image_pyramids, lidar_depth_error, msac_gains,  # noqa: E402
                                  masked_median, project, pyr_down, rotations_differ, restore_explained, sample_at, solve, with_gradients)
 from test_direct import _plane_scene  # noqa: E402
 
@@ -303,6 +303,12 @@ def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _consensus_gain_numpy(A, A_c, grey0, grey1, X, w, K, cap=2.0):
     """The MSAC gain written out in numpy: per point, min(r^2 / (cap sigma)^2, 1) under the
     classical pose minus under the weighted one, averaged over the trusted points."""
+    gains, trusted = _msac_gains_numpy(A, A_c, grey0, grey1, X, w, K, cap)
+    return float(gains[trusted].mean())
+
+
+def _msac_gains_numpy(A, A_c, grey0, grey1, X, w, K, cap=2.0):
+    """`_consensus_gain_numpy` point by point: each point's gain and whether it is trusted."""
     proj = lambda P: (K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2], K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2])  # noqa: E731
     ref = _bilinear(grey0, *proj(X))
     rs, seen = [], []
@@ -316,8 +322,7 @@ def _consensus_gain_numpy(A, A_c, grey0, grey1, X, w, K, cap=2.0):
     ok = seen[0] & seen[1] & (w > 0)
     sigma = 1.4826 * min(np.median(np.abs(rs[0][ok])), np.median(np.abs(rs[1][ok])))
     cost = [np.minimum(r**2 / (cap * sigma) ** 2, 1.0) for r in rs]
-    trusted = ok & (w >= 0.5)
-    return float((cost[1] - cost[0])[trusted].mean())
+    return cost[1] - cost[0], ok & (w >= 0.5)
 
 
 def test_consensus_gain_tells_a_mover_from_a_false_detection():
@@ -347,6 +352,14 @@ def test_consensus_gain_tells_a_mover_from_a_false_detection():
         print(f"{case}: gain {gain:.4f} (numpy {expected:.4f}); classical pose off by "
               f"{np.linalg.norm(A_c[0, :3, 3].numpy() - A[:3, 3]) * 1000:.1f} mm")
         assert abs(gain - expected) < 1e-4
+        # point by point (what scripts/selection_rules.py reads the gain's spread from)
+        per, trusted = msac_gains(A_w, A_c, g0, g1, pts, weight, K)
+        per_np, trusted_np = _msac_gains_numpy(A_w[0].numpy(), A_c[0].numpy(), grey_image(img0),
+                                               grey_image(frame_t), X, weight[0, : len(X)].numpy(), calib.K2)
+        assert np.array_equal(trusted[0, : len(X)].numpy() > 0, trusted_np) and not trusted[0, len(X):].any()
+        diff = np.abs(per[0, : len(X)].numpy()[trusted_np] - per_np[trusted_np]).max()
+        print(f"{case}: point by point within {diff:.1e} of numpy, {trusted_np.sum()} trusted")
+        assert diff < 5e-4
         gains[case] = gain
     assert gains["mover"] > 0.1 and abs(gains["static"]) < 0.001
 
