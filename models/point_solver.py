@@ -386,7 +386,8 @@ def consensus_gain(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tens
 
 @full_precision
 def msac_gains(A: torch.Tensor, A_classical: torch.Tensor, grey1: torch.Tensor, grey2: torch.Tensor,
-               points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor, cap: float = 2.0) -> tuple:
+               points: torch.Tensor, weight: torch.Tensor, K: torch.Tensor,
+               cap: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
     """`consensus_gain` point by point: each point's MSAC cost under A_classical minus under A (B,N),
     and the points it averages over (B,N, 1 where trusted and seen under both poses)."""
     ref = sample_at(grey1, project(points, K)[0], inside=True)[:, 0]  # frame t-1's own points

@@ -204,7 +204,8 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
             return None
         return w < r * c if strict else w <= r * c
 
-    for scan in ("scan", "scan_all") if all("scan_W" in p for ps in pairs.values() for p in ps) else ():
+    has_scan = all("scan_W" in p for ps in pairs.values() for p in ps)  # the checkpoint's graph reads it
+    for scan in ("scan", "scan_all") if has_scan else ():
         rules += [(f"shipped, {scan} W <= {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
                    and fits(ps, i, n, r, False) is not False) for r in SCAN_VETO]
         rules += [(f"shipped or {scan} W < {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
@@ -218,7 +219,7 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
         rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
                    (shipped(ps, i) and fits(ps, i, n, v, False) is not False) or bool(fits(ps, i, n, r, True)))
                   for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]
-    if all("scan_W" in p for ps in pairs.values() for p in ps):
+    if has_scan:
         # what ships (the photometric test with the cap at 0.7, or the scan's pass at 0.7), the
         # photometric side asked for more: several pairs read together (vehicles stay in view for a
         # while, a false detection comes and goes), or a gain that stands out from its own spread
@@ -242,7 +243,8 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
         cut = [1 - scores[d][0] / classical[d] for d in drives if info[d].traffic]
         kept = [keep(pairs[d], i) for d in drives if not info[d].traffic for i in range(len(pairs[d]))]
         summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
-                  f"{sum(x < -1e-4 for x in static)}, weighted kept on {sum(kept)} of {len(kept)} pairs" if static else ""
+                  f"{sum(x < -1e-4 for x in static)}, weighted kept on {sum(kept)} of {len(kept)} pairs" \
+            if static else ""
         if cut:
             summary += f"; traffic: cut mean {100 * np.mean(cut):.1f} %, smallest {100 * min(cut):.1f} %"
         print(f"{name:48s} {summary} | " + " ".join(f"{s:.3f}{unit}" for s, unit in scores.values()), flush=True)
