@@ -527,14 +527,16 @@ done
 static_drives "242 09 150" "243 10 50" "244 09 300" "245 10 250" "246 09 450" "247 10 350" "248 09 600" \
   "249 10 450" "250 09 750" "251 10 550" "252 09 950" "253 10 650" "254 09 1150" "255 10 750" "256 09 1350" \
   "257 10 850"
-drive traffic_324 --frames 200 --seed 324 --motion-from "$GT/09.txt" --motion-start 450 --traffic 3
-drive traffic_325 --frames 200 --seed 325 --motion-from "$GT/10.txt" --motion-start 250 --traffic 5
-drive traffic_326 --frames 200 --seed 326 --motion-from "$GT/09.txt" --motion-start 750 --traffic 7
-drive traffic_327 --frames 200 --seed 327 --motion-from "$GT/10.txt" --motion-start 450 --traffic 9
-drive traffic_328 --frames 200 --seed 328 --motion-from "$GT/09.txt" --motion-start 1000 --traffic 4
-drive traffic_329 --frames 200 --seed 329 --motion-from "$GT/10.txt" --motion-start 650 --traffic 6
-drive traffic_330 --frames 200 --seed 330 --motion-from "$GT/09.txt" --motion-start 1250 --traffic 8
-drive traffic_331 --frames 200 --seed 331 --motion-from "$GT/10.txt" --motion-start 850 --traffic 10
+# traffic_drives "SEED KITTI_SEQ START DENSITY"...: each into traffic_SEED, 200 frames, sensor effects
+traffic_drives() {
+  for spec in "$@"; do
+    read -r seed sq start density <<< "$spec"
+    drive "traffic_$seed" --frames 200 --seed "$seed" --motion-from "$GT/$sq.txt" --motion-start "$start" \
+      --traffic "$density"
+  done
+}
+traffic_drives "324 09 450 3" "325 10 250 5" "326 09 750 7" "327 10 450 9" "328 09 1000 4" "329 10 650 6" \
+  "330 09 1250 8" "331 10 850 10"
 for d in "$OUT"/data/static_24[2-9] "$OUT"/data/static_25[0-7] "$OUT"/data/traffic_32[4-9] "$OUT"/data/traffic_33[01]; do
   "$D3LVO" run "$d" --backend onnxruntime --threads 2 --out "$OUT/eval/more_default_$(basename "$d").txt" --overwrite
   "$D3LVO" run "$d" --method direct --out "$OUT/eval/more_direct_$(basename "$d").txt" --overwrite
