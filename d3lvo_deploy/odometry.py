@@ -201,7 +201,13 @@ class Odometry:
         the graph `chains_classical`; what a resumed run needs (`prime`'s `start`)."""
         if not self.chains_classical:
             return self.motion2[None]
-        return np.stack([self.motion2, self.motion2 if self.motion2_classical is None else self.motion2_classical])
+        return np.stack([self.motion2, self._classical_start])
+
+    @property
+    def _classical_start(self) -> np.ndarray:
+        """Where the classical solve starts after a pair: its own previous pose, else (none saved)
+        where the weighted solve starts."""
+        return self.motion2 if self.motion2_classical is None else self.motion2_classical
 
     def reset(self, start_pose: np.ndarray | None = None) -> None:
         """Forget the previous frame; the next `step` returns `start_pose` (identity)."""
@@ -395,7 +401,7 @@ class Odometry:
             if self.cold and len(prev.points):
                 start = cold_start_motion(prev, solver, self.calib.K2, self.model.config, self.cold_start)
             if self.chains_classical:
-                classical = start if self.cold or self.motion2_classical is None else self.motion2_classical
+                classical = start if self.cold else self._classical_start
                 feeds[CLASSICAL_START_INPUT] = np.asarray(classical, np.float32).reshape(1, 4, 4)
         return {**camera_inputs(self.pre.K, start), **feeds}
 
