@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,80 +16,83 @@ from .progress import frame_progress
 DEMO_SEED = 909  # not among the training seeds (10-18) nor validation seeds (109-110)
 DEMO_FRAMES = 220  # ~140 m: long enough for the devkit's 100 m segments
 DEMO_SIZE = (620, 188)  # the bundled model runs at 608x176; rendering at this size keeps the demo quick
+# the second drive: vehicles that move around the camera, where the learned confidence is what the
+# network adds to the classical tracker; a seed no training or validation drive uses, and the
+# density and sensor effects of the held-out traffic drives (docs/evaluation.md)
+DEMO_TRAFFIC_SEED = 910
+DEMO_TRAFFIC = 5.0  # moving vehicles per 100 m of road
+
+
+@dataclass(frozen=True)
+class DemoDrive:
+    """One held-out synthetic drive of the demo: its folder's name under --out and its label."""
+    name: str
+    label: str
+    cfg: object  # d3lvo_deploy.synth.generator.SynthConfig (imported with the [synth] extra)
 
 
 @friendly_errors
 def demo_command(
     out_dir: Path = typer.Option(Path(tempfile.gettempdir()) / "d3lvo-demo", "--out",
-                                 help="Folder for the sequence, poses and plots (default: outside the checkout)."),
-    frames: int = typer.Option(DEMO_FRAMES, "--frames", help="Length of the held-out synthetic sequence."),
+                                 help="Folder for the sequences, poses and plots (default: outside the checkout)."),
+    frames: int = typer.Option(DEMO_FRAMES, "--frames", help="Length of each held-out synthetic drive."),
+    traffic: bool = typer.Option(True, "--traffic/--no-traffic", help="Also the drive with moving vehicles "
+                                 "(about a minute more the first time, to render it)."),
     onnx: Path | None = typer.Option(None, "--onnx", help="Model folder (default: the bundled model)."),
 ) -> None:
-    """Generate a held-out synthetic drive, run the ONNX pipeline, score it; then the real frames.
+    """Render two held-out synthetic drives (static, and with traffic), run the ONNX pipeline and
+    its classical mode on each, score both; then the real frames.
 
     Example: d3lvo demo --out /tmp/d3lvo-demo
     """
     from d3lvo_deploy.extras import require
 
     require("embreex", "matplotlib", what="d3lvo demo (it renders a drive and plots it)")
-    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
-    from d3lvo_deploy.evaluation import EvalReport, evaluate
+    from d3lvo_deploy.evaluation import EvalReport
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
-    from d3lvo_deploy.synth.generator import SynthConfig, check_config, generate
+    from d3lvo_deploy.synth.generator import SynthConfig, check_config
     from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
+    from d3lvo_deploy.backends import SessionConfig
 
-    from .eval_cmd import _fmt, report_table
+    from .eval_cmd import report_table
     from .run_cmd import latency_table, resolve_model_dir
 
     t_start = time.perf_counter()
     model_dir = resolve_model_dir(onnx)
     load_manifest(model_dir, verify_hashes=False)  # a wrong --onnx is one error before any rendering
-    seq_dir = out_dir / "synthetic_heldout"
-    cfg = SynthConfig(frames=frames, seed=DEMO_SEED, width=DEMO_SIZE[0], height=DEMO_SIZE[1])
-    check_config(cfg)
-    if _rendered(seq_dir, cfg):
-        console.print(lead("1/3", "bold", f" reusing the held-out synthetic drive rendered earlier in {seq_dir}"),
-                      highlight=False)
-    else:
-        console.print(lead("1/3", "bold", f" rendering a held-out synthetic drive ({frames} frames, seed {DEMO_SEED}) "
-                                          f"into {seq_dir}"), highlight=False)
-        with frame_progress() as bar:
-            task = bar.add_task("synth", total=frames, rate="")
-            generate(seq_dir, cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
-
-    from d3lvo_deploy.backends import SessionConfig
+    size = dict(width=DEMO_SIZE[0], height=DEMO_SIZE[1])
+    drives = [DemoDrive("synthetic_heldout", "static", SynthConfig(frames=frames, seed=DEMO_SEED, **size))]
+    if traffic:
+        drives.append(DemoDrive("synthetic_traffic", "traffic", SynthConfig(
+            frames=frames, seed=DEMO_TRAFFIC_SEED, traffic=DEMO_TRAFFIC, sensor_effects=True, **size)))
+    for d in drives:
+        check_config(d.cfg)
+    for d in drives:
+        _render(out_dir / d.name, d)
 
     sc = SessionConfig(backend="auto").resolved()  # OpenVINO where installed: the faster engine here
     engine = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}[sc.backend]
-    console.print(lead("2/3", "bold", f" D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) on it"),
+    console.print(lead("2/3", "bold", f" D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) and, "
+                                      "beside it, its classical mode (--method direct) on "
+                                      + (" and ".join(d.label for d in drives)) + (" drive" if len(drives) == 1 else " drives")),
                   highlight=False)
-    seq = KittiSequence.open(seq_dir)
-    poses_path = out_dir / "synthetic_heldout_poses.txt"
-    with frame_progress() as bar:
-        task = bar.add_task("run", total=len(seq), rate="")
-        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True), sc,
-                               progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
-    res = evaluate(seq.ground_truth, read_poses(poses_path), name="synthetic held-out")
-    # the baseline beside it: the model's classical mode, the same solver with every point weighted 1
-    direct_path = out_dir / "synthetic_heldout_direct.txt"
-    with frame_progress() as bar:
-        task = bar.add_task("direct", total=len(seq), rate="")
-        run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
-                     odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])),
-                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
-    base = evaluate(seq.ground_truth, read_poses(direct_path), name="synthetic held-out")
-    out.print(report_table({"D3LVO (ONNX)": EvalReport([res], "none"),
-                            "--method direct (no learning)": EvalReport([base], "none")}))
-    out.print(latency_table(summary))
-    plot = plot_trajectories(out_dir / "synthetic_heldout.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses,
-                                                                 "--method direct": base.est_poses},
-                             title=f"held-out synthetic drive: t_rel {_fmt(res.t_rel)} % (direct {_fmt(base.t_rel)} %), "
-                                   f"ATE {res.ate:.2f} m")
-    console.print(f"poses: {poses_path} (--method direct: {direct_path.name})\nplot:  {plot}", highlight=False)
+    reports, first_summary = {}, None
+    for d in drives:
+        res, base, summary = _score(out_dir, d, model_dir, sc)
+        first_summary = first_summary or summary
+        reports[f"D3LVO (ONNX), {d.label}"] = EvalReport([res], "none")
+        reports[f"--method direct (no learning), {d.label}"] = EvalReport([base], "none")
+        plot = plot_trajectories(out_dir / f"{d.name}.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses,
+                                                             "--method direct": base.est_poses},
+                                 title=f"held-out {d.label} drive: t_rel {_pct(res.t_rel)} % (direct {_pct(base.t_rel)} %)")
+        console.print(f"{d.label}: poses {out_dir / (d.name + '_poses.txt')} (--method direct: {d.name}_direct.txt), "
+                      f"plot {plot}", highlight=False)
+    out.print(report_table(reports))
+    out.print(latency_table(first_summary))
 
     real = find_real_frames()
     if real is None:
@@ -109,9 +113,55 @@ def demo_command(
                      "accuracy." if Path(model_dir).resolve() == bundled_model_dir().resolve() else "."),
                   highlight=False)
         console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)
-    size = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
-    console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {size:.0f} MB "
+    mb = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
+    console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {mb:.0f} MB "
                   "(delete it when done)", highlight=False)
+
+
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.2f}"
+
+
+def _render(seq_dir: Path, d: DemoDrive) -> None:
+    """Render the drive into seq_dir, or reuse it where an earlier demo rendered exactly it."""
+    from d3lvo_deploy.synth.generator import generate
+
+    what = f"the held-out {d.label} synthetic drive"
+    if _rendered(seq_dir, d.cfg):
+        console.print(lead("1/3", "bold", f" reusing {what} rendered earlier in {seq_dir}"), highlight=False)
+        return
+    extra = f", {d.cfg.traffic:g} moving vehicles per 100 m, sensor effects" if d.cfg.traffic else ""
+    console.print(lead("1/3", "bold", f" rendering {what} ({d.cfg.frames} frames, seed {d.cfg.seed}{extra}) "
+                                      f"into {seq_dir}"), highlight=False)
+    with frame_progress() as bar:
+        task = bar.add_task("synth", total=d.cfg.frames, rate="")
+        generate(seq_dir, d.cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
+
+
+def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc):
+    """The model and, beside it, its classical mode (the same solver with every point weighted 1)
+    on the drive: both scored against its ground truth, and the model's run summary (latency)."""
+    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
+    from d3lvo_deploy.evaluation import evaluate
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.poses import read_poses
+    from d3lvo_deploy.sequence import KittiSequence
+
+    seq = KittiSequence.open(out_dir / d.name)
+    poses_path, direct_path = out_dir / f"{d.name}_poses.txt", out_dir / f"{d.name}_direct.txt"
+    with frame_progress() as bar:
+        task = bar.add_task(f"run, {d.label}", total=len(seq), rate="")
+        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True), sc,
+                               progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
+    with frame_progress() as bar:
+        task = bar.add_task(f"direct, {d.label}", total=len(seq), rate="")
+        run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
+                     odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])),
+                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
+    name = f"seed {d.cfg.seed}"
+    return (evaluate(seq.ground_truth, read_poses(poses_path), name=name),
+            evaluate(seq.ground_truth, read_poses(direct_path), name=name), summary)
 
 
 def _rendered(seq_dir: Path, cfg) -> bool:

@@ -27,12 +27,24 @@ def test_bundled_onnx_matches_its_checkpoint(small_synth):
 
 
 def test_demo_runs_end_to_end(tmp_path):
-    r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--frames", "12"])
+    """Both held-out drives, the static one and the one with moving vehicles (its motion masks
+    rendered), each run by the model and by its classical mode and scored; a second demo reuses
+    both renders."""
+    demo = tmp_path / "demo"
+    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12"])
     assert r.exit_code == 0, r.output
     assert "ATE m" in r.output and "latency" in r.output
-    assert (tmp_path / "demo" / "synthetic_heldout.png").stat().st_size > 1000
-    lines = (tmp_path / "demo" / "synthetic_heldout_poses.txt").read_text().splitlines()
-    assert len(lines) == 12
+    for drive in ("synthetic_heldout", "synthetic_traffic"):
+        assert (demo / f"{drive}.png").stat().st_size > 1000
+        for kind in ("poses", "direct"):
+            assert len((demo / f"{drive}_{kind}.txt").read_text().splitlines()) == 12
+    assert len(list((demo / "synthetic_traffic" / "motion_2").glob("*.png"))) == 12
+    assert not (demo / "synthetic_heldout" / "motion_2").exists()
+    rows = [line for line in r.output.splitlines() if "│ seed 9" in line]  # the scores' table
+    assert len(rows) == 4 and sum("│ seed 910" in line for line in rows) == 2
+    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12", "--no-traffic"])
+    assert r.exit_code == 0, r.output
+    assert "reusing the held-out static" in r.output and "traffic" not in r.output.split("3/3")[0].split("2/3")[1]
 
 
 def test_run_without_onnx_uses_the_bundled_model(small_synth, tmp_path):
