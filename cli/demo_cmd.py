@@ -21,6 +21,7 @@ DEMO_SIZE = (620, 188)  # the bundled model runs at 608x176; rendering at this s
 # density and sensor effects of the held-out traffic drives (docs/evaluation.md)
 DEMO_TRAFFIC_SEED = 910
 DEMO_TRAFFIC = 5.0  # moving vehicles per 100 m of road
+VIZ_EVERY = 20  # the traffic drive's pictures of what the network sees: every this-th frame
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,10 @@ def demo_command(
                   highlight=False)
     reports, first_summary = {}, None
     for d in drives:
-        res, base, summary = _score(out_dir, d, model_dir, sc)
+        # with traffic, pictures of what the network sees: its confidence is low on what moves
+        viz = out_dir / f"{d.name}_viz" if d.cfg.traffic else None
+        every = max(1, min(VIZ_EVERY, frames // 4))  # a few pictures of a short drive too
+        res, base, summary = _score(out_dir, d, model_dir, sc, viz, every)
         first_summary = first_summary or summary
         reports[f"D3LVO (ONNX), {d.label}"] = EvalReport([res], "none")
         reports[f"--method direct (no learning), {d.label}"] = EvalReport([base], "none")
@@ -90,7 +94,8 @@ def demo_command(
                                                              "--method direct": base.est_poses},
                                  title=f"held-out {d.label} drive: t_rel {_pct(res.t_rel)} % (direct {_pct(base.t_rel)} %)")
         console.print(f"{d.label}: poses {out_dir / (d.name + '_poses.txt')} (--method direct: {d.name}_direct.txt), "
-                      f"plot {plot}", highlight=False)
+                      f"plot {plot}" + (f", every {every}th frame as the network sees it (camera, depth, flow, "
+                                        f"confidence) in {viz}" if viz else ""), highlight=False)
     out.print(report_table(reports))
     out.print(latency_table(first_summary))
 
@@ -138,9 +143,10 @@ def _render(seq_dir: Path, d: DemoDrive) -> None:
         generate(seq_dir, d.cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
 
 
-def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc):
+def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc, viz: Path | None, every: int):
     """The model and, beside it, its classical mode (the same solver with every point weighted 1)
-    on the drive: both scored against its ground truth, and the model's run summary (latency)."""
+    on the drive: both scored against its ground truth, and the model's run summary (latency);
+    with `viz`, the run's pictures of every `every`-th frame (`d3lvo run --viz`) there."""
     from d3lvo_deploy.direct import DirectConfig, DirectOdometry
     from d3lvo_deploy.evaluation import evaluate
     from d3lvo_deploy.manifest import load_manifest
@@ -152,7 +158,8 @@ def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc):
     poses_path, direct_path = out_dir / f"{d.name}_poses.txt", out_dir / f"{d.name}_direct.txt"
     with frame_progress() as bar:
         task = bar.add_task(f"run, {d.label}", total=len(seq), rate="")
-        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True), sc,
+        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True, viz_dir=viz,
+                                                         viz_every=every), sc,
                                progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
     with frame_progress() as bar:
         task = bar.add_task(f"direct, {d.label}", total=len(seq), rate="")

@@ -40,6 +40,9 @@ def test_demo_runs_end_to_end(tmp_path):
             assert len((demo / f"{drive}_{kind}.txt").read_text().splitlines()) == 12
     assert len(list((demo / "synthetic_traffic" / "motion_2").glob("*.png"))) == 12
     assert not (demo / "synthetic_heldout" / "motion_2").exists()
+    # the traffic drive's pictures of what the network sees: frames 3, 6, 9 (every 12 // 4)
+    assert sorted(p.name for p in (demo / "synthetic_traffic_viz").glob("*.png")) == \
+        ["000003.png", "000006.png", "000009.png"]
     rows = [line for line in r.output.splitlines() if "│ seed 9" in line]  # the scores' table
     assert len(rows) == 4 and sum("│ seed 910" in line for line in rows) == 2
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12", "--no-traffic"])
