@@ -1,4 +1,5 @@
-"""`d3lvo demo`: the bundled model on a held-out synthetic sequence (scored) and on real KITTI frames."""
+"""`d3lvo demo`: the bundled model on two held-out synthetic drives, static and with traffic (each scored
+beside its classical mode), and on real KITTI frames."""
 
 from __future__ import annotations
 
@@ -58,6 +59,7 @@ def demo_command(
     from d3lvo_deploy.synth.generator import SynthConfig, check_config
     from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
     from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.results import make_output_folder
 
     from .eval_cmd import report_table
     from .run_cmd import latency_table, resolve_model_dir
@@ -72,6 +74,8 @@ def demo_command(
             frames=frames, seed=DEMO_TRAFFIC_SEED, traffic=DEMO_TRAFFIC, sensor_effects=True, **size)))
     for d in drives:
         check_config(d.cfg)
+    # so is an --out that cannot be written (after the settings' checks, which leave nothing behind)
+    make_output_folder(out_dir, "--out", "the demo's drives, poses and plots")
     for d in drives:
         _render(out_dir / d.name, d)
 
@@ -94,7 +98,7 @@ def demo_command(
                                                              "--method direct": base.est_poses},
                                  title=f"held-out {d.label} drive: t_rel {_pct(res.t_rel)} % (direct {_pct(base.t_rel)} %)")
         console.print(f"{d.label}: poses {out_dir / (d.name + '_poses.txt')} (--method direct: {d.name}_direct.txt), "
-                      f"plot {plot}" + (f", every {every}th frame as the network sees it (camera, depth, flow, "
+                      f"plot {plot}" + (f", one frame in {every} as the network sees it (camera, depth, flow, "
                                         f"confidence) in {viz}" if viz else ""), highlight=False)
     out.print(report_table(reports))
     out.print(latency_table(first_summary))

@@ -141,7 +141,7 @@ def test_synth_bad_size_and_unwritable(tmp_path):
                         (["--traffic", "-1"], "--traffic must be 0 or more")):
         for command in (["synth", "--out", str(tmp_path / "y")], ["demo", "--out", str(tmp_path / "y")]):
             if command[0] == "demo" and args[0] != "--frames":
-                continue  # the demo's drive has its own size and no traffic
+                continue  # the demo's drives have their own size and traffic
             r = runner.invoke(app, [*command, *args])
             assert r.exit_code == 1 and r.output.startswith("error: "), r.output
             assert words in r.output and len(r.output.strip().splitlines()) == 1, r.output
@@ -153,6 +153,9 @@ def test_synth_bad_size_and_unwritable(tmp_path):
     r = runner.invoke(app, ["synth", "--out", str(blocker), "--frames", "2", "--size", "320x96"])  # before the bar
     assert r.exit_code == 1 and r.output.strip() == f"error: {blocker}: is a file: --out names the folder to render " \
                                                      "the sequence into", r.output
+    r = runner.invoke(app, ["demo", "--out", str(blocker)])  # before any rendering
+    assert r.exit_code == 1 and r.output.strip() == f"error: {blocker}: is a file; --out names the folder for the " \
+                                                     "demo's drives, poses and plots", r.output
 
 
 def test_eval_several_estimates_one_table_and_a_scale_hint(tmp_path):
