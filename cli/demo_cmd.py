@@ -108,23 +108,51 @@ def demo_command(
         console.print(lead("3/3", "bold", " ../shared/data (real KITTI frames) not found: skipped"), highlight=False)
     else:
         console.print(lead("3/3", "bold", f" the 20 real KITTI frames in {real}"), highlight=False)
-        rseq = KittiSequence.open(real)
-        rpath = out_dir / "real_r0926_poses.txt"
-        run_sequence(rseq, model_dir, RunConfig(out=rpath, overwrite=True), sc)
-        rp = read_poses(rpath).poses
-        dist = float(np.linalg.norm(np.diff(rp[:, :3, 3], axis=0), axis=1).sum())
-        rplot = plot_trajectories(out_dir / "real_r0926.png", {"D3LVO (ONNX)": rp}, title="real KITTI 2011_09_26 (no GT)")
-        end = ", ".join(f"{v:.2f}" for v in rp[-1, :3, 3])
-        out.print(f"real frames: {len(rp)} poses, a {dist:.2f} m path estimated, ending at ({end}) m in cam0 "
-                  "(docs/evaluation.md compares it with LiDAR-only odometry). No ground truth "
-                  "exists for these frames, so no accuracy is claimed"
-                  + ("; the bundled model was trained on synthetic data only and is not meant for real KITTI "
-                     "accuracy." if Path(model_dir).resolve() == bundled_model_dir().resolve() else "."),
-                  highlight=False)
-        console.print(f"poses: {rpath}\nplot:  {rplot}", highlight=False)
+        bundled = Path(model_dir).resolve() == bundled_model_dir().resolve()
+        _real_frames(out_dir, KittiSequence.open(real), model_dir, sc, bundled)
     mb = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {mb:.0f} MB "
                   "(delete it when done)", highlight=False)
+
+
+def _real_frames(out_dir: Path, seq, model_dir: Path, sc, bundled: bool) -> None:
+    """The model and its classical mode on real frames that have no ground truth, beside LiDAR-only
+    odometry on the same scans (KISS-ICP, where the `[test]` extra installed it): how far each
+    travels and where it ends, and how far that end is from the LiDAR-only one."""
+    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
+    from d3lvo_deploy.lidar_reference import have_kiss_icp, kiss_icp_cam0
+    from d3lvo_deploy.manifest import load_manifest
+    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.plot import plot_trajectories
+    from d3lvo_deploy.poses import read_poses
+    from rich.table import Table
+
+    path, direct_path = out_dir / "real_r0926_poses.txt", out_dir / "real_r0926_direct.txt"
+    run_sequence(seq, model_dir, RunConfig(out=path, overwrite=True), sc)
+    run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
+                 odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])))
+    runs = {"D3LVO (ONNX)": read_poses(path).poses, "--method direct (no learning)": read_poses(direct_path).poses}
+    ref = kiss_icp_cam0(seq) if have_kiss_icp() else None
+    table = Table(title="real frames (no ground truth), cam0")
+    for col in ("estimate", "path m", "end point m", "end off LiDAR-only m"):
+        table.add_column(col, justify="left" if col == "estimate" else "right")
+    for name, P in {**runs, **({"LiDAR-only (KISS-ICP)": ref} if ref is not None else {})}.items():
+        off = f"{np.linalg.norm(P[-1, :3, 3] - ref[-1, :3, 3]):.2f}" if ref is not None else ""
+        table.add_row(name, f"{_path_length(P):.2f}", "(" + ", ".join(f"{v:.2f}" for v in P[-1, :3, 3]) + ")",
+                      "" if name.startswith("LiDAR") else off)
+    out.print(table)
+    plot = plot_trajectories(out_dir / "real_r0926.png", {**({"LiDAR-only (KISS-ICP)": ref} if ref is not None else {}),
+                                                          **runs}, title="real KITTI 2011_09_26 (no GT)")
+    out.print("No ground truth exists for these frames: "
+              + ("LiDAR-only odometry on the same scans is the reference (docs/evaluation.md)" if ref is not None else
+                 "with the [test] extra (kiss-icp) the demo compares them with LiDAR-only odometry")
+              + ("; the bundled model was trained on synthetic data only and is not meant for real KITTI accuracy."
+                 if bundled else "."), highlight=False)
+    console.print(f"poses: {path} (--method direct: {direct_path.name})\nplot:  {plot}", highlight=False)
+
+
+def _path_length(P: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum())
 
 
 def _pct(v: float | None) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import se3_inv
 from .sequence import KittiSequence
 
 
@@ -26,3 +27,17 @@ def kiss_icp_poses(seq: KittiSequence) -> np.ndarray:
         odo.register_frame(pts, np.zeros(len(pts)))
         poses.append(odo.last_pose.copy())
     return np.array(poses)
+
+
+def kiss_icp_cam0(seq: KittiSequence) -> np.ndarray:
+    """`kiss_icp_poses` moved into cam0 (KITTI's pose frame), first pose identity: comparable with
+    a `d3lvo run` trajectory of the same frames."""
+    Tr = seq.calib.Tr
+    return np.array([Tr @ p @ se3_inv(Tr) for p in kiss_icp_poses(seq)])
+
+
+def have_kiss_icp() -> bool:
+    """Whether the reference can be computed here (the `[test]` extra)."""
+    import importlib.util
+
+    return importlib.util.find_spec("kiss_icp") is not None

@@ -45,6 +45,12 @@ def test_demo_runs_end_to_end(tmp_path):
         ["000003.png", "000006.png", "000009.png"]
     rows = [line for line in r.output.splitlines() if "│ seed 9" in line]  # the scores' table
     assert len(rows) == 4 and sum("│ seed 910" in line for line in rows) == 2
+    from d3lvo_deploy.bundled import find_real_frames
+
+    if find_real_frames() is not None:  # the real frames beside LiDAR-only odometry (kiss-icp: the [test] extra)
+        real = r.output[r.output.index("3/3"):]
+        assert all(name in real for name in ("D3LVO (ONNX)", "--method direct", "LiDAR-only (KISS-ICP)"))
+        assert len((demo / "real_r0926_direct.txt").read_text().splitlines()) == 20
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12", "--no-traffic"])
     assert r.exit_code == 0, r.output
     assert "reusing the held-out static" in r.output and "traffic" not in r.output.split("3/3")[0].split("2/3")[1]

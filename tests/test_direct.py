@@ -159,10 +159,9 @@ def _kiss_icp_cam0(seq: KittiSequence) -> np.ndarray:
     """KISS-ICP's poses (`d3lvo_deploy.lidar_reference`) moved into cam0: the independent
     reference for real frames."""
     pytest.importorskip("kiss_icp.kiss_icp")
-    from d3lvo_deploy.lidar_reference import kiss_icp_poses
+    from d3lvo_deploy.lidar_reference import kiss_icp_cam0
 
-    Tr = seq.calib.Tr
-    return np.array([Tr @ p @ se3_inv(Tr) for p in kiss_icp_poses(seq)])
+    return kiss_icp_cam0(seq)
 
 
 def test_real_frames_end_near_lidar_odometry():
