@@ -7,6 +7,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
@@ -14,8 +15,15 @@ import typer
 from .common import console, friendly_errors, lead, out
 from .progress import frame_progress
 
+if TYPE_CHECKING:  # the [synth] extra; imported where the demo runs
+    from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.evaluation import SequenceResult
+    from d3lvo_deploy.pipeline import RunSummary
+    from d3lvo_deploy.sequence import KittiSequence
+    from d3lvo_deploy.synth.generator import SynthConfig
+
 DEMO_SEED = 909  # not among the training seeds (10-18) nor validation seeds (109-110)
-DEMO_FRAMES = 220  # ~140 m: long enough for the devkit's 100 m segments
+DEMO_FRAMES = 220  # 140-150 m: long enough for the devkit's 100 m segments
 DEMO_SIZE = (620, 188)  # the bundled model runs at 608x176; rendering at this size keeps the demo quick
 # the second drive: vehicles that move around the camera, where the learned confidence is what the
 # network adds to the classical tracker; a seed no training or validation drive uses, and the
@@ -30,7 +38,7 @@ class DemoDrive:
     """One held-out synthetic drive of the demo: its folder's name under --out and its label."""
     name: str
     label: str
-    cfg: object  # d3lvo_deploy.synth.generator.SynthConfig (imported with the [synth] extra)
+    cfg: SynthConfig
 
 
 @friendly_errors
@@ -49,19 +57,17 @@ def demo_command(
     """
     from d3lvo_deploy.extras import require
 
-    require("embreex", "matplotlib", what="d3lvo demo (it renders a drive and plots it)")
+    require("embreex", "matplotlib", what="d3lvo demo (it renders drives and plots them)")
     from d3lvo_deploy.evaluation import EvalReport
     from d3lvo_deploy.manifest import load_manifest
-    from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.plot import plot_trajectories
-    from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.synth.generator import SynthConfig, check_config
     from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
     from d3lvo_deploy.backends import SessionConfig
     from d3lvo_deploy.results import make_output_folder
 
-    from .eval_cmd import report_table
+    from .eval_cmd import _fmt, report_table
     from .run_cmd import latency_table, resolve_model_dir
 
     t_start = time.perf_counter()
@@ -86,17 +92,18 @@ def demo_command(
                                       + (" and ".join(d.label for d in drives)) + (" drive" if len(drives) == 1 else " drives")),
                   highlight=False)
     reports, first_summary = {}, None
+    every = max(1, min(VIZ_EVERY, frames // 4))  # a few pictures of a short drive too
     for d in drives:
         # with traffic, pictures of what the network sees: its confidence is low on what moves
         viz = out_dir / f"{d.name}_viz" if d.cfg.traffic else None
-        every = max(1, min(VIZ_EVERY, frames // 4))  # a few pictures of a short drive too
         res, base, summary = _score(out_dir, d, model_dir, sc, viz, every)
-        first_summary = first_summary or summary
+        if first_summary is None:
+            first_summary = summary
         reports[f"D3LVO (ONNX), {d.label}"] = EvalReport([res], "none")
         reports[f"--method direct (no learning), {d.label}"] = EvalReport([base], "none")
         plot = plot_trajectories(out_dir / f"{d.name}.png", {"GT": res.gt_poses, "D3LVO (ONNX)": res.est_poses,
                                                              "--method direct": base.est_poses},
-                                 title=f"held-out {d.label} drive: t_rel {_pct(res.t_rel)} % (direct {_pct(base.t_rel)} %)")
+                                 title=f"held-out {d.label} drive: t_rel {_fmt(res.t_rel)} % (direct {_fmt(base.t_rel)} %)")
         console.print(f"{d.label}: poses {out_dir / (d.name + '_poses.txt')} (--method direct: {d.name}_direct.txt), "
                       f"plot {plot}" + (f", one frame in {every} as the network sees it (camera, depth, flow, "
                                         f"confidence) in {viz}" if viz else ""), highlight=False)
@@ -115,7 +122,7 @@ def demo_command(
                   "(delete it when done)", highlight=False)
 
 
-def _real_frames(out_dir: Path, seq, model_dir: Path, sc, bundled: bool) -> None:
+def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: SessionConfig, bundled: bool) -> None:
     """The model and its classical mode on real frames that have no ground truth, beside LiDAR-only
     odometry on the same scans (KISS-ICP, where the `[test]` extra installed it): how far each
     travels and where it ends, and how far that end is from the LiDAR-only one."""
@@ -133,16 +140,15 @@ def _real_frames(out_dir: Path, seq, model_dir: Path, sc, bundled: bool) -> None
                  odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])))
     runs = {"D3LVO (ONNX)": read_poses(path).poses, "--method direct (no learning)": read_poses(direct_path).poses}
     ref = kiss_icp_cam0(seq) if have_kiss_icp() else None
+    reference = {} if ref is None else {"LiDAR-only (KISS-ICP)": ref}
     table = Table(title="real frames (no ground truth), cam0")
-    for col in ("estimate", "path m", "end point m", "end off LiDAR-only m"):
+    for col in ("estimate", "path m", "end point m") + (() if ref is None else ("end off LiDAR-only m",)):
         table.add_column(col, justify="left" if col == "estimate" else "right")
-    for name, P in {**runs, **({"LiDAR-only (KISS-ICP)": ref} if ref is not None else {})}.items():
-        off = f"{np.linalg.norm(P[-1, :3, 3] - ref[-1, :3, 3]):.2f}" if ref is not None else ""
-        table.add_row(name, f"{_path_length(P):.2f}", "(" + ", ".join(f"{v:.2f}" for v in P[-1, :3, 3]) + ")",
-                      "" if name.startswith("LiDAR") else off)
+    for name, P in {**runs, **reference}.items():
+        off = [] if ref is None else ["" if name in reference else f"{np.linalg.norm(P[-1, :3, 3] - ref[-1, :3, 3]):.2f}"]
+        table.add_row(name, f"{_path_length(P):.2f}", "(" + ", ".join(f"{v:.2f}" for v in P[-1, :3, 3]) + ")", *off)
     out.print(table)
-    plot = plot_trajectories(out_dir / "real_r0926.png", {**({"LiDAR-only (KISS-ICP)": ref} if ref is not None else {}),
-                                                          **runs}, title="real KITTI 2011_09_26 (no GT)")
+    plot = plot_trajectories(out_dir / "real_r0926.png", {**reference, **runs}, title="real KITTI 2011_09_26 (no GT)")
     out.print("No ground truth exists for these frames: "
               + ("LiDAR-only odometry on the same scans is the reference (docs/evaluation.md)" if ref is not None else
                  "with the [test] extra (kiss-icp) the demo compares them with LiDAR-only odometry")
@@ -152,11 +158,8 @@ def _real_frames(out_dir: Path, seq, model_dir: Path, sc, bundled: bool) -> None
 
 
 def _path_length(P: np.ndarray) -> float:
+    """Metres travelled along (N,4,4) poses: what the real frames, without ground truth, compare."""
     return float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum())
-
-
-def _pct(v: float | None) -> str:
-    return "n/a" if v is None else f"{v:.2f}"
 
 
 def _render(seq_dir: Path, d: DemoDrive) -> None:
@@ -175,7 +178,8 @@ def _render(seq_dir: Path, d: DemoDrive) -> None:
         generate(seq_dir, d.cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
 
 
-def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc, viz: Path | None, every: int):
+def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, viz: Path | None,
+           every: int) -> tuple[SequenceResult, SequenceResult, RunSummary]:
     """The model and, beside it, its classical mode (the same solver with every point weighted 1)
     on the drive: both scored against its ground truth, and the model's run summary (latency);
     with `viz`, the run's pictures of every `every`-th frame (`d3lvo run --viz`) there."""
@@ -187,6 +191,9 @@ def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc, viz: Path | None, e
     from d3lvo_deploy.sequence import KittiSequence
 
     seq = KittiSequence.open(out_dir / d.name)
+    if viz is not None:  # pictures of an earlier demo (another --frames) would mix with this run's
+        for old in viz.glob("*.png"):
+            old.unlink()
     poses_path, direct_path = out_dir / f"{d.name}_poses.txt", out_dir / f"{d.name}_direct.txt"
     with frame_progress() as bar:
         task = bar.add_task(f"run, {d.label}", total=len(seq), rate="")

@@ -1,5 +1,6 @@
 """The bundled default model: present, verified, equal to its shipped checkpoint, and the demo runs."""
 
+import pytest
 from typer.testing import CliRunner
 
 from cli.main import app
@@ -26,10 +27,20 @@ def test_bundled_onnx_matches_its_checkpoint(small_synth):
     assert rep.passed, rep.to_dict()
 
 
-def test_demo_runs_end_to_end(tmp_path):
+def test_demo_runs_end_to_end(tmp_path, monkeypatch):
     """Both held-out drives, the static one and the one with moving vehicles (its motion masks
-    rendered), each run by the model and by its classical mode and scored; a second demo reuses
-    both renders."""
+    rendered, pictures of what the network sees written), each run by the model and by its
+    classical mode and scored; on the real frames both beside LiDAR-only odometry, each end's
+    distance from its end as the pose files and KISS-ICP give it. A second demo with
+    `--no-traffic` reuses the static render, writes no pictures, and without kiss-icp says how
+    to get the comparison and prints no LiDAR-only row."""
+    import numpy as np
+
+    from d3lvo_deploy import lidar_reference
+    from d3lvo_deploy.bundled import find_real_frames
+    from d3lvo_deploy.poses import read_poses
+    from d3lvo_deploy.sequence import KittiSequence
+
     demo = tmp_path / "demo"
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12"])
     assert r.exit_code == 0, r.output
@@ -45,15 +56,25 @@ def test_demo_runs_end_to_end(tmp_path):
         ["000003.png", "000006.png", "000009.png"]
     rows = [line for line in r.output.splitlines() if "│ seed 9" in line]  # the scores' table
     assert len(rows) == 4 and sum("│ seed 910" in line for line in rows) == 2
-    from d3lvo_deploy.bundled import find_real_frames
-
-    if find_real_frames() is not None:  # the real frames beside LiDAR-only odometry (kiss-icp: the [test] extra)
-        real = r.output[r.output.index("3/3"):]
-        assert all(name in real for name in ("D3LVO (ONNX)", "--method direct", "LiDAR-only (KISS-ICP)"))
-        assert len((demo / "real_r0926_direct.txt").read_text().splitlines()) == 20
+    real = find_real_frames()
+    if real is not None and lidar_reference.have_kiss_icp():
+        ref = lidar_reference.kiss_icp_cam0(KittiSequence.open(real))
+        printed = r.output[r.output.index("3/3"):]
+        for name, file in (("D3LVO (ONNX)", "real_r0926_poses.txt"), ("--method direct", "real_r0926_direct.txt")):
+            est = read_poses(demo / file).poses
+            assert len(est) == 20
+            row = next(line for line in printed.splitlines() if line.startswith(f"│ {name}"))
+            off = float(row.split("│")[-2])
+            assert off == pytest.approx(np.linalg.norm(est[-1, :3, 3] - ref[-1, :3, 3]), abs=0.005)
+        assert "│ LiDAR-only (KISS-ICP)" in printed
+    monkeypatch.setattr(lidar_reference, "have_kiss_icp", lambda: False)
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12", "--no-traffic"])
     assert r.exit_code == 0, r.output
     assert "reusing the held-out static" in r.output and "traffic" not in r.output.split("3/3")[0].split("2/3")[1]
+    assert not (demo / "synthetic_heldout_viz").exists()
+    if real is not None:
+        printed = r.output[r.output.index("3/3"):]
+        assert "LiDAR-only (KISS-ICP)" not in printed and "with the [test] extra (kiss-icp)" in printed
 
 
 def test_run_without_onnx_uses_the_bundled_model(small_synth, tmp_path):
