@@ -36,6 +36,9 @@ def synth_command(
                                   "0 renders a static street."),
     sensor_effects: bool = typer.Option(False, "--sensor-effects/--clean", help="Per-frame exposure changes, "
                                         "vignetting, shot noise and LiDAR dropout on dark or far surfaces."),
+    ego_collisions: bool = typer.Option(False, "--ego-collisions", help="With --traffic: keep vehicles whose "
+                                        "schedule runs into the camera's own car (dropped by default), as the "
+                                        "bundled model's training drives were rendered (scripts/train_default.sh)."),
 ) -> None:
     """Render a synthetic KITTI-format sequence: image_2, velodyne, calib, times and GT poses.
 
@@ -52,7 +55,7 @@ def synth_command(
         raise D3LVOInputError(motion_from, "trajectory to replay not found")
     cfg = SynthConfig(frames=frames, seed=seed, width=width, height=height,
                       motion_from=str(motion_from) if motion_from else None, motion_start=motion_start,
-                      write_depth=depth, traffic=traffic, sensor_effects=sensor_effects)
+                      write_depth=depth, traffic=traffic, sensor_effects=sensor_effects, ego_collisions=ego_collisions)
     check_config(cfg)
     check_output(out, cfg, resume)  # before the progress bar: a refusal is one line
     make_poses(cfg)  # reads --motion-from (a fraction of a second)

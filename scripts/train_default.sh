@@ -81,22 +81,26 @@ drive() {
   [ -f "$OUT/data/$1/poses.txt" ] && { [[ " ${*:2} " != *" --traffic "* ]] || [ -d "$OUT/data/$1/shadow_2" ]; } && return
   "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" "${S[@]}"
 }
+# the training and validation drives with traffic as the bundled model saw them: vehicles whose
+# schedule runs into the camera's own car kept (`d3lvo synth --ego-collisions`; some of these
+# drives have such vehicles: `python scripts/ego_collisions.py DRIVE...` lists them)
+seen() { drive "$@" --ego-collisions; }
 # a static drive of 200 frames, no sensor effects: static_drive NAME SEED KITTI_SEQ START
 static_drive() {
   [ -f "$OUT/data/$1/poses.txt" ] || "$D3LVO" synth --out "$OUT/data/$1" --frames 200 --seed "$2" --size "$SIZE" \
     --motion-from "$GT/$3.txt" --motion-start "$4"
 }
-drive tr_00 --frames 120 --seed 500 --motion-from "$GT/00.txt" --motion-start 100 --traffic 4
-drive tr_02 --frames 120 --seed 501 --motion-from "$GT/02.txt" --motion-start 300 --traffic 6
-drive tr_05 --frames 120 --seed 502 --motion-from "$GT/05.txt" --motion-start 500 --traffic 3
-drive tr_08 --frames 120 --seed 503 --motion-from "$GT/08.txt" --motion-start 700 --traffic 8
+seen tr_00 --frames 120 --seed 500 --motion-from "$GT/00.txt" --motion-start 100 --traffic 4
+seen tr_02 --frames 120 --seed 501 --motion-from "$GT/02.txt" --motion-start 300 --traffic 6
+seen tr_05 --frames 120 --seed 502 --motion-from "$GT/05.txt" --motion-start 500 --traffic 3
+seen tr_08 --frames 120 --seed 503 --motion-from "$GT/08.txt" --motion-start 700 --traffic 8
 drive st_03 --frames 120 --seed 504 --motion-from "$GT/03.txt" --motion-start 100
 drive st_07 --frames 120 --seed 505 --motion-from "$GT/07.txt" --motion-start 200
-drive tr_04 --frames 120 --seed 506 --motion-from "$GT/04.txt" --motion-start 50 --traffic 5
-drive tr_06 --frames 120 --seed 507 --motion-from "$GT/06.txt" --motion-start 400 --traffic 7
-drive tr_01 --frames 120 --seed 508 --motion-from "$GT/01.txt" --motion-start 300 --traffic 4
-drive tr_00b --frames 120 --seed 509 --motion-from "$GT/00.txt" --motion-start 2000 --traffic 10
-drive val_traffic --frames 100 --seed 600 --motion-from "$GT/08.txt" --motion-start 2000 --traffic 6
+seen tr_04 --frames 120 --seed 506 --motion-from "$GT/04.txt" --motion-start 50 --traffic 5
+seen tr_06 --frames 120 --seed 507 --motion-from "$GT/06.txt" --motion-start 400 --traffic 7
+seen tr_01 --frames 120 --seed 508 --motion-from "$GT/01.txt" --motion-start 300 --traffic 4
+seen tr_00b --frames 120 --seed 509 --motion-from "$GT/00.txt" --motion-start 2000 --traffic 10
+seen val_traffic --frames 100 --seed 600 --motion-from "$GT/08.txt" --motion-start 2000 --traffic 6
 points=()
 for s in tr_00 tr_00b tr_01 tr_02 tr_04 tr_05 tr_06 tr_08 st_03 st_07; do points+=(--data "$OUT/data/$s"); done
 OMP_NUM_THREADS=1 "$D3LVO" train "${points[@]}" --val "$OUT/data/val_traffic" --out "$OUT/points.pt" \
@@ -175,8 +179,8 @@ drive traffic_313 --frames 200 --seed 313 --motion-from "$GT/10.txt" --motion-st
 drive traffic_314 --frames 200 --seed 314 --motion-from "$GT/09.txt" --motion-start 1350 --traffic 6
 drive traffic_315 --frames 200 --seed 315 --motion-from "$GT/10.txt" --motion-start 800 --traffic 10
 # validation drives of where each pair starts (docs/model-card.md: the kept pose or the weighted one)
-drive val_traffic_3 --frames 200 --seed 606 --motion-from "$GT/05.txt" --motion-start 600 --traffic 4
-drive val_traffic_4 --frames 200 --seed 607 --motion-from "$GT/00.txt" --motion-start 3000 --traffic 8
+seen val_traffic_3 --frames 200 --seed 606 --motion-from "$GT/05.txt" --motion-start 600 --traffic 4
+seen val_traffic_4 --frames 200 --seed 607 --motion-from "$GT/00.txt" --motion-start 3000 --traffic 8
 for v in kept-start:0.01 pt_select:0.01; do
   .venv/bin/python scripts/confidence_variants.py "$v" "$OUT/data/val_traffic_3" "$OUT/data/val_traffic_4"
 done
@@ -226,7 +230,7 @@ done
 
 # the power that turns a confidence into a weight (pt_conf_power), on the validation drives with
 # and without traffic (docs/model-card.md#solver-settings): 4 ships
-drive val_traffic_2 --frames 200 --seed 605 --motion-from "$GT/02.txt" --motion-start 1500 --traffic 6
+seen val_traffic_2 --frames 200 --seed 605 --motion-from "$GT/02.txt" --motion-start 1500 --traffic 6
 for spec in "602 03 300" "603 07 500" "604 06 200"; do
   read -r seed sq start <<< "$spec"
   static_drive "val_static_$((seed - 600))" "$seed" "$sq" "$start"
@@ -241,8 +245,8 @@ done
 
 # at power 4, the static prior and a higher selection threshold, on those validation drives and six
 # more (docs/model-card.md#solver-settings): neither ships
-drive val_traffic_612 --frames 200 --seed 612 --motion-from "$GT/08.txt" --motion-start 1500 --traffic 5
-drive val_traffic_613 --frames 200 --seed 613 --motion-from "$GT/00.txt" --motion-start 1500 --traffic 3
+seen val_traffic_612 --frames 200 --seed 612 --motion-from "$GT/08.txt" --motion-start 1500 --traffic 5
+seen val_traffic_613 --frames 200 --seed 613 --motion-from "$GT/00.txt" --motion-start 1500 --traffic 3
 for spec in "608 00 1000" "609 02 2000" "610 05 1200" "611 08 3000"; do
   read -r seed sq start <<< "$spec"
   static_drive "val_static_$seed" "$seed" "$sq" "$start"
@@ -453,12 +457,12 @@ done
 # checkpoints/dense_solver_step600.pt are their full states. Chosen on the validation drives (the
 # confidence's AUROC and t_rel), shipped with the settings default.pt holds, and scored once on
 # the held-out drives.
-drive trd_00 --frames 120 --seed 540 --motion-from "$GT/00.txt" --motion-start 700 --traffic 12
-drive trd_02 --frames 120 --seed 541 --motion-from "$GT/02.txt" --motion-start 2500 --traffic 9
-drive trd_05 --frames 120 --seed 542 --motion-from "$GT/05.txt" --motion-start 1800 --traffic 10
-drive trd_06 --frames 120 --seed 543 --motion-from "$GT/06.txt" --motion-start 700 --traffic 11
-drive trd_07 --frames 120 --seed 544 --motion-from "$GT/07.txt" --motion-start 500 --traffic 9
-drive trd_08 --frames 120 --seed 545 --motion-from "$GT/08.txt" --motion-start 3200 --traffic 12
+seen trd_00 --frames 120 --seed 540 --motion-from "$GT/00.txt" --motion-start 700 --traffic 12
+seen trd_02 --frames 120 --seed 541 --motion-from "$GT/02.txt" --motion-start 2500 --traffic 9
+seen trd_05 --frames 120 --seed 542 --motion-from "$GT/05.txt" --motion-start 1800 --traffic 10
+seen trd_06 --frames 120 --seed 543 --motion-from "$GT/06.txt" --motion-start 700 --traffic 11
+seen trd_07 --frames 120 --seed 544 --motion-from "$GT/07.txt" --motion-start 500 --traffic 9
+seen trd_08 --frames 120 --seed 545 --motion-from "$GT/08.txt" --motion-start 3200 --traffic 12
 dense=("${more[@]}")
 for s in trd_00 trd_02 trd_05 trd_06 trd_07 trd_08; do dense+=(--data "$OUT/data/$s"); done
 OMP_NUM_THREADS=1 "$D3LVO" train --config scripts/confidence.toml "${dense[@]}" --val "$OUT/data/val_traffic" \

@@ -42,6 +42,43 @@ def test_every_kind_of_vehicle_is_planned():
     assert gap.max() - gap.min() < 0.5
 
 
+def test_a_vehicle_that_runs_into_the_cameras_car_is_dropped():
+    """`meets_ego` on hand-placed boxes around a camera at the origin, whose car (`EGO_FOOTPRINT`)
+    reaches 1 m either side of it, 3.5 m behind and 1.5 m ahead. A car of 4 x 1.8 m, grown by
+    0.3 m: beside it, they touch below 1 + 0.9 + 0.3 = 2.2 m between the centres (2.1 m overlaps,
+    2.3 m does not); turned across the road ahead, below 1.5 + 0.9 + 0.3 = 2.7 m (2.6 / 2.8 m);
+    behind, within 3.5 + 2.0 + 0.3 = 5.8 m (5.7 / 5.9 m). On seed 911's own winding path with 3 vehicles per 100 m an oncoming car's schedule
+    runs through the camera: the plan drops it, and keeps the other vehicles of the seed as they
+    were (`ego_collisions` keeps it)."""
+    from d3lvo_deploy.synth.traffic import meets_ego
+
+    mesh = Mesh()
+    add_box(mesh, np.zeros(3), np.array([0.0, 0.0, 1.0]), (4.0, 1.8, 1.0), 0, (0.5, 0.5, 0.5))
+    car = mesh.arrays()
+    ego = np.eye(4)[None]
+
+    def at(x: float, z: float, yaw_deg: float = 0.0) -> Vehicle:
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        T = np.eye(4)
+        T[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+        T[:3, 3] = [x, 0.0, z]
+        return Vehicle("overtaking", car, T[None])
+
+    assert meets_ego(at(2.1, 0.0), ego) and not meets_ego(at(2.3, 0.0), ego)
+    assert meets_ego(at(-2.1, 0.0), ego) and not meets_ego(at(-2.3, 0.0), ego)
+    assert meets_ego(at(0.0, 2.6, 90.0), ego) and not meets_ego(at(0.0, 2.8, 90.0), ego)
+    assert meets_ego(at(0.0, -5.7), ego) and not meets_ego(at(0.0, -5.9), ego)
+    cfg = SynthConfig(frames=220, seed=911, width=620, height=188, traffic=3.0, sensor_effects=True)
+    poses = make_poses(cfg)
+    scene = make_scene(poses, cfg.seed)
+    plan = lambda clear: plan_traffic(build_path(poses), scene.style, poses, cfg.traffic,  # noqa: E731
+                                      np.random.default_rng([cfg.seed, 3]), clear_ego=clear)
+    every, kept = plan(False), plan(True)
+    dropped = [v for v in every if not any(np.array_equal(v.poses, k.poses) for k in kept)]
+    assert [v.kind for v in dropped] == ["oncoming"] and len(kept) == len(every) - 1
+    assert all(meets_ego(v, poses) for v in dropped) and not any(meets_ego(v, poses) for v in kept)
+
+
 def test_static_drive_writes_no_traffic_files(small_synth):
     assert not any((small_synth / d).exists() for d in ("motion_2", "flow_2", "shadow_2"))
     assert "traffic" not in (small_synth / "synth.json").read_text()

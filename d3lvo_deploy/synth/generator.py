@@ -66,12 +66,15 @@ class SynthConfig:
     drive: DriveConfig = field(default_factory=DriveConfig)
     traffic: float = 0.0  # moving vehicles per 100 m of driven road
     sensor_effects: bool = False  # exposure changes, vignetting, shot noise, dark/far LiDAR dropout
+    # keep vehicles whose schedule runs into the camera's own car (`traffic.meets_ego`): how the
+    # bundled model's training and validation drives were rendered (scripts/train_default.sh)
+    ego_collisions: bool = False
 
     def meta(self) -> dict:
         """synth.json: the settings, leaving out the traffic and sensor keys at their defaults, so
         that a static drive's file names only what shapes it (and static folders stay resumable)."""
         d = {"generator_version": GENERATOR_VERSION, **asdict(self)}
-        for k in ("traffic", "sensor_effects"):
+        for k in ("traffic", "sensor_effects", "ego_collisions"):
             if not d[k]:
                 del d[k]
         return d
@@ -296,8 +299,8 @@ def generate(out: str | Path, cfg: SynthConfig, progress: Callable[[int], None] 
     write_poses(out / "poses.txt", poses)
 
     scene = make_scene(poses, cfg.seed)
-    vehicles = plan_traffic(build_path(poses), scene.style, poses, cfg.traffic,
-                            np.random.default_rng([cfg.seed, 3])) if cfg.traffic else []
+    vehicles = plan_traffic(build_path(poses), scene.style, poses, cfg.traffic, np.random.default_rng([cfg.seed, 3]),
+                            clear_ego=not cfg.ego_collisions) if cfg.traffic else []
     exposures = sensor_exposures(cfg) if cfg.sensor_effects else [None] * cfg.frames
     K = calib.K2
     for i in range(cfg.frames):

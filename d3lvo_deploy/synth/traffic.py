@@ -19,6 +19,10 @@ from .raycast import RayCaster
 from .world import CAR, GLASS, Mesh, Path2D, StreetStyle, add_box
 
 KINDS = ("lead", "overtaking", "overtaken", "oncoming", "crossing")
+# the ego car around cam0 on the ground plane, (x0, x1, z0, z1) in metres, x right and z forward:
+# KITTI's car is 1.8 m wide and 4.8 m long with the cameras on its roof ahead of the middle
+EGO_FOOTPRINT = (-1.0, 1.0, -3.5, 1.5)
+CLEARANCE = 0.3  # m kept between a vehicle and the ego car
 
 
 @dataclass(frozen=True)
@@ -72,10 +76,11 @@ def ego_arc_length(path: Path2D, poses: np.ndarray) -> np.ndarray:
 
 
 def plan_traffic(path: Path2D, st: StreetStyle, poses: np.ndarray, density: float,
-                 rng: np.random.Generator) -> list[Vehicle]:
+                 rng: np.random.Generator, clear_ego: bool = True) -> list[Vehicle]:
     """About `density` moving vehicles per 100 m of the street (the driven road and the stretches
     seen behind and ahead of it), the kinds in turn; schedules put every vehicle beside or in front
-    of the camera at some time during the drive."""
+    of the camera at some time during the drive. With `clear_ego`, none that runs into the camera's
+    own car (`meets_ego`)."""
     s_ego = ego_arc_length(path, poses)
     n = len(poses)
     t = np.arange(n) * 0.1
@@ -107,8 +112,42 @@ def plan_traffic(path: Path2D, st: StreetStyle, poses: np.ndarray, density: floa
             v = float(rng.uniform(4.0, 8.0))
             s = np.full(n, np.interp(when, t, s_ego) + float(rng.uniform(20.0, 35.0)))
             lat, heading = v * (t - when), "across"
-        out.append(Vehicle(kind, mesh, on_street(path, s, lat, heading)))
+        vehicle = Vehicle(kind, mesh, on_street(path, s, lat, heading))
+        # a schedule that runs the vehicle into the camera's own car (the driven path can pass a
+        # stretch of street twice, or an oncoming lane cut a corner) is dropped, after its draws,
+        # so that the vehicles after it are those of the same seed
+        if not (clear_ego and meets_ego(vehicle, poses)):
+            out.append(vehicle)
     return out
+
+
+def _rectangles(poses: np.ndarray, footprint: tuple[float, float, float, float]) -> tuple[np.ndarray, ...]:
+    """Per frame, on the ground plane (world x, z): the centre (n,2) of the footprint (x0, x1, z0,
+    z1) of a frame whose x is right and z forward, its unit right and forward axes (n,2), and its
+    half extents (2,)."""
+    x0, x1, z0, z1 = footprint
+    right, fwd = poses[:, [0, 2], 0], poses[:, [0, 2], 2]
+    right = right / np.linalg.norm(right, axis=1, keepdims=True)
+    fwd = fwd / np.linalg.norm(fwd, axis=1, keepdims=True)
+    centre = poses[:, [0, 2], 3] + right * (x0 + x1) / 2 + fwd * (z0 + z1) / 2
+    return centre, right, fwd, np.array([(x1 - x0) / 2, (z1 - z0) / 2])
+
+
+def meets_ego(vehicle: Vehicle, poses: np.ndarray, clearance: float = CLEARANCE) -> bool:
+    """Whether the vehicle's footprint, grown by `clearance`, overlaps the ego car's
+    (`EGO_FOOTPRINT` around the camera poses, (n,4,4)) in any frame: two rectangles on the ground
+    plane overlap unless one of their four axes separates them."""
+    v = vehicle.mesh["vertices"]
+    lo, hi = v.min(0), v.max(0)
+    grown = (lo[0] - clearance, hi[0] + clearance, lo[2] - clearance, hi[2] + clearance)
+    ca, ua, wa, ha = _rectangles(poses, EGO_FOOTPRINT)
+    cb, ub, wb, hb = _rectangles(vehicle.poses, grown)
+    d = cb - ca
+    apart = np.zeros(len(poses), bool)
+    for axis in (ua, wa, ub, wb):
+        reach = lambda u, w, h: h[0] * np.abs((u * axis).sum(1)) + h[1] * np.abs((w * axis).sum(1))  # noqa: E731
+        apart |= np.abs((d * axis).sum(1)) > reach(ua, wa, ha) + reach(ub, wb, hb)
+    return bool((~apart).any())
 
 
 def world_at(static: dict[str, np.ndarray], vehicles: list[Vehicle], frame: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
