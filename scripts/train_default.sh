@@ -558,3 +558,14 @@ drive demo_910 --frames 220 --seed 910 --traffic 5
 "$D3LVO" run "$OUT/data/demo_910" --method direct --out "$OUT/eval/demo_910_direct.txt" --overwrite
 for e in demo_910 demo_910_direct; do "$D3LVO" eval --gt "$OUT/data/demo_910/poses.txt" --est "$OUT/eval/$e.txt"; done
 .venv/bin/python -m models.pair_eval d3lvo_deploy/default_model/default.pt "$OUT/data/demo_910" --pairs 219
+# Four more drives on the synthesizer's own path with traffic and sensor effects (seed, vehicles
+# per 100 m), held out like the others (docs/evaluation.md, "The demo")
+for spec in "911 3" "912 7" "913 9" "914 4"; do
+  read -r seed density <<< "$spec"
+  drive "own_$seed" --frames 220 --seed "$seed" --traffic "$density"
+  "$D3LVO" run "$OUT/data/own_$seed" --backend onnxruntime --threads 1 --out "$OUT/eval/net_$seed.txt" --overwrite
+  "$D3LVO" run "$OUT/data/own_$seed" --method direct --out "$OUT/eval/dir_$seed.txt" --overwrite
+  for e in net dir; do "$D3LVO" eval --gt "$OUT/data/own_$seed/poses.txt" --est "$OUT/eval/${e}_$seed.txt"; done
+  OMP_NUM_THREADS=1 .venv/bin/python -m models.pair_eval d3lvo_deploy/default_model/default.pt "$OUT/data/own_$seed" \
+    --pairs 219
+done
