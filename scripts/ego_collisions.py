@@ -27,7 +27,11 @@ def settings(drive: str) -> SynthConfig:
     if written is None:
         raise D3LVOInputError(drive, "no readable synth.json: not a folder `d3lvo synth` rendered")
     written = {k: v for k, v in written.items() if k != "generator_version"}
-    return SynthConfig(**{**written, "lidar": LidarConfig(**written["lidar"]), "drive": DriveConfig(**written["drive"])})
+    try:
+        return SynthConfig(**{**written, "lidar": LidarConfig(**written["lidar"]),
+                              "drive": DriveConfig(**written["drive"])})
+    except (KeyError, TypeError) as e:
+        raise D3LVOInputError(drive, f"synth.json does not hold d3lvo synth's settings ({e})") from None
 
 
 def main(drives: list[str]) -> None:

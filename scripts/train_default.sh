@@ -82,8 +82,8 @@ drive() {
   "$D3LVO" synth --out "$OUT/data/$1" "${@:2}" "${S[@]}"
 }
 # the training and validation drives with traffic as the bundled model saw them: vehicles whose
-# schedule runs into the camera's own car kept (`d3lvo synth --ego-collisions`; some of these
-# drives have such vehicles: `python scripts/ego_collisions.py DRIVE...` lists them)
+# schedule runs into the camera's own car kept (`d3lvo synth --ego-collisions`; val_traffic_4 and
+# val_traffic_612 have some: `python scripts/ego_collisions.py DRIVE...` lists them)
 seen() { drive "$@" --ego-collisions; }
 # a static drive of 200 frames, no sensor effects: static_drive NAME SEED KITTI_SEQ START
 static_drive() {

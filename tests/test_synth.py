@@ -2,6 +2,7 @@
 
 import hashlib
 import re
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -167,6 +168,27 @@ def test_other_settings_in_the_same_folder_are_refused(tmp_path):
     with pytest.raises(D3LVOInputError, match=r"other settings \(traffic unset there, 2.0 asked\)"):  # a static render
         generate(tmp_path / "s", SynthConfig(frames=2, seed=1, width=320, height=96, traffic=2.0))
     generate(tmp_path / "s", SynthConfig(frames=2, seed=2, width=320, height=96), resume=False)  # --overwrite
+
+
+def test_a_traffic_render_says_whether_it_kept_vehicles_that_run_into_the_camera(tmp_path):
+    """With traffic, synth.json names `ego_collisions` either way (a static one does not); a file
+    that does not name it kept every vehicle, so it reads as true: resuming it with the default
+    is refused by that key, with `ego_collisions` it resumes."""
+    import json
+
+    from d3lvo_deploy.synth.generator import rendered_settings
+
+    cfg = SynthConfig(frames=2, seed=1, width=320, height=96, traffic=2.0)
+    out = generate(tmp_path / "t", cfg)
+    assert json.loads((out / "synth.json").read_text())["ego_collisions"] is False
+    assert "ego_collisions" not in SynthConfig(frames=2, ego_collisions=True).meta()
+    written = json.loads((out / "synth.json").read_text())
+    del written["ego_collisions"]
+    (out / "synth.json").write_text(json.dumps(written))
+    assert rendered_settings(out)["ego_collisions"] is True
+    with pytest.raises(D3LVOInputError, match=r"other settings \(ego_collisions True there, False asked\)"):
+        generate(out, cfg)
+    generate(out, replace(cfg, ego_collisions=True))
 
 
 def test_motion_replays_real_gt(tmp_path):

@@ -47,9 +47,9 @@ def test_a_vehicle_that_runs_into_the_cameras_car_is_dropped():
     reaches 1 m either side of it, 3.5 m behind and 1.5 m ahead. A car of 4 x 1.8 m, grown by
     0.3 m: beside it, they touch below 1 + 0.9 + 0.3 = 2.2 m between the centres (2.1 m overlaps,
     2.3 m does not); turned across the road ahead, below 1.5 + 0.9 + 0.3 = 2.7 m (2.6 / 2.8 m);
-    behind, within 3.5 + 2.0 + 0.3 = 5.8 m (5.7 / 5.9 m). On seed 911's own winding path with 3 vehicles per 100 m an oncoming car's schedule
-    runs through the camera: the plan drops it, and keeps the other vehicles of the seed as they
-    were (`ego_collisions` keeps it)."""
+    behind, within 3.5 + 2.0 + 0.3 = 5.8 m (5.7 / 5.9 m). On seed 911's own winding path with 3
+    vehicles per 100 m an oncoming car's schedule runs through the camera: the plan drops it and
+    keeps the other vehicles of the seed as they are (`ego_collisions` keeps it)."""
     from d3lvo_deploy.synth.traffic import meets_ego
 
     mesh = Mesh()

@@ -72,11 +72,14 @@ class SynthConfig:
 
     def meta(self) -> dict:
         """synth.json: the settings, leaving out the traffic and sensor keys at their defaults, so
-        that a static drive's file names only what shapes it (and static folders stay resumable)."""
+        that a static drive's file names only what shapes it (and static folders stay resumable);
+        with traffic, `ego_collisions` either way (`rendered_settings`)."""
         d = {"generator_version": GENERATOR_VERSION, **asdict(self)}
-        for k in ("traffic", "sensor_effects", "ego_collisions"):
+        for k in ("traffic", "sensor_effects"):
             if not d[k]:
                 del d[k]
+        if not self.traffic:  # no vehicles to keep or leave out
+            del d["ego_collisions"]
         return d
 
     def as_written(self) -> dict:
@@ -85,12 +88,18 @@ class SynthConfig:
 
 
 def rendered_settings(folder: str | Path) -> dict | None:
-    """The settings in a render's synth.json; None where it is missing, unreadable or not settings."""
+    """The settings in a render's synth.json; None where it is missing, unreadable or not settings.
+    A render with traffic whose file does not name `ego_collisions` kept every vehicle: read as
+    true, so that resuming or reusing it asks for that."""
     try:
         settings = json.loads((Path(folder) / "synth.json").read_text())
     except (OSError, ValueError):  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         return None
-    return settings if isinstance(settings, dict) else None
+    if not isinstance(settings, dict):
+        return None
+    if settings.get("traffic") and "ego_collisions" not in settings:
+        settings["ego_collisions"] = True
+    return settings
 
 
 def drive_traffic(folder: str | Path) -> float | None:
@@ -270,7 +279,10 @@ def check_output(out: Path, cfg: SynthConfig, resume: bool = True) -> None:
             raise D3LVOInputError(meta_path, "is not the settings file d3lvo synth writes (unreadable or damaged): "
                                              "use another --out, or --overwrite to render the folder again")
         if old != new:
-            key = next(k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k))
+            # the key that says most: a static render against one with traffic differs in both
+            # `traffic` and `ego_collisions`, which only follows from it
+            keys = sorted(set(old) | set(new), key=lambda k: (k == "ego_collisions", k))
+            key = next(k for k in keys if old.get(k) != new.get(k))
             shown = lambda v: "unset" if v is None else repr(v)  # noqa: E731  (a static render has no traffic)
             raise D3LVOInputError(out, f"holds a synthetic sequence made with other settings ({key} "
                                        f"{shown(old.get(key))} there, {shown(new.get(key))} asked); use another "

@@ -20,7 +20,7 @@ from .world import CAR, GLASS, Mesh, Path2D, StreetStyle, add_box
 
 KINDS = ("lead", "overtaking", "overtaken", "oncoming", "crossing")
 # the ego car around cam0 on the ground plane, (x0, x1, z0, z1) in metres, x right and z forward:
-# KITTI's car is 1.8 m wide and 4.8 m long with the cameras on its roof ahead of the middle
+# KITTI's car (1.8 m wide, 4.8 m long, the cameras on its roof ahead of the middle) rounded up
 EGO_FOOTPRINT = (-1.0, 1.0, -3.5, 1.5)
 CLEARANCE = 0.3  # m kept between a vehicle and the ego car
 
@@ -145,9 +145,13 @@ def meets_ego(vehicle: Vehicle, poses: np.ndarray, clearance: float = CLEARANCE)
     d = cb - ca
     apart = np.zeros(len(poses), bool)
     for axis in (ua, wa, ub, wb):
-        reach = lambda u, w, h: h[0] * np.abs((u * axis).sum(1)) + h[1] * np.abs((w * axis).sum(1))  # noqa: E731
-        apart |= np.abs((d * axis).sum(1)) > reach(ua, wa, ha) + reach(ub, wb, hb)
+        apart |= np.abs((d * axis).sum(1)) > _reach(ua, wa, ha, axis) + _reach(ub, wb, hb, axis)
     return bool((~apart).any())
+
+
+def _reach(right: np.ndarray, fwd: np.ndarray, half: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """How far a rectangle (axes (n,2), half extents (2,)) reaches from its centre along `axis` (n,2)."""
+    return half[0] * np.abs((right * axis).sum(1)) + half[1] * np.abs((fwd * axis).sum(1))
 
 
 def world_at(static: dict[str, np.ndarray], vehicles: list[Vehicle], frame: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
