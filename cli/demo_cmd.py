@@ -17,6 +17,7 @@ from .progress import frame_progress
 
 if TYPE_CHECKING:  # the [synth] extra; imported where the demo runs
     from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.direct import DirectConfig
     from d3lvo_deploy.evaluation import SequenceResult
     from d3lvo_deploy.pipeline import RunSummary
     from d3lvo_deploy.sequence import KittiSequence
@@ -58,6 +59,7 @@ def demo_command(
     from d3lvo_deploy.extras import require
 
     require("embreex", "matplotlib", what="d3lvo demo (it renders drives and plots them)")
+    from d3lvo_deploy.direct import DirectConfig
     from d3lvo_deploy.evaluation import EvalReport
     from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.plot import plot_trajectories
@@ -72,7 +74,8 @@ def demo_command(
 
     t_start = time.perf_counter()
     model_dir = resolve_model_dir(onnx)
-    load_manifest(model_dir, verify_hashes=False)  # a wrong --onnx is one error before any rendering
+    # a wrong --onnx is one error before any rendering; the classical mode's settings are the model's
+    classical = DirectConfig.of_model(load_manifest(model_dir, verify_hashes=False)["model_config"])
     size = dict(width=DEMO_SIZE[0], height=DEMO_SIZE[1])
     drives = [DemoDrive("synthetic_heldout", "static", SynthConfig(frames=frames, seed=DEMO_SEED, **size))]
     if traffic:
@@ -96,7 +99,7 @@ def demo_command(
     for d in drives:
         # with traffic, pictures of what the network sees: its confidence is low on what moves
         viz = out_dir / f"{d.name}_viz" if d.cfg.traffic else None
-        res, base, summary = _score(out_dir, d, model_dir, sc, viz, every)
+        res, base, summary = _score(out_dir, d, model_dir, sc, classical, viz, every)
         if first_summary is None:
             first_summary = summary
         reports[f"D3LVO (ONNX), {d.label}"] = EvalReport([res], "none")
@@ -116,19 +119,20 @@ def demo_command(
     else:
         console.print(lead("3/3", "bold", f" the 20 real KITTI frames in {real}"), highlight=False)
         bundled = Path(model_dir).resolve() == bundled_model_dir().resolve()
-        _real_frames(out_dir, KittiSequence.open(real), model_dir, sc, bundled)
+        _real_frames(out_dir, KittiSequence.open(real), model_dir, sc, classical, bundled)
     mb = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {mb:.0f} MB "
                   "(delete it when done)", highlight=False)
 
 
-def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: SessionConfig, bundled: bool) -> None:
+def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: SessionConfig, classical: DirectConfig,
+                 bundled: bool) -> None:
     """The model and its classical mode on real frames that have no ground truth, beside LiDAR-only
     odometry on the same scans (KISS-ICP, where the `[test]` extra installed it): how far each
     travels and where it ends, and how far that end is from the LiDAR-only one."""
-    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
+    from d3lvo_deploy.direct import DirectOdometry
+    from d3lvo_deploy.evaluation import path_length
     from d3lvo_deploy.lidar_reference import have_kiss_icp, kiss_icp_cam0
-    from d3lvo_deploy.manifest import load_manifest
     from d3lvo_deploy.pipeline import RunConfig, run_sequence
     from d3lvo_deploy.plot import plot_trajectories
     from d3lvo_deploy.poses import read_poses
@@ -137,7 +141,7 @@ def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: Session
     path, direct_path = out_dir / "real_r0926_poses.txt", out_dir / "real_r0926_direct.txt"
     run_sequence(seq, model_dir, RunConfig(out=path, overwrite=True), sc)
     run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
-                 odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])))
+                 odometry=DirectOdometry(seq.calib, classical))
     runs = {"D3LVO (ONNX)": read_poses(path).poses, "--method direct (no learning)": read_poses(direct_path).poses}
     ref = kiss_icp_cam0(seq) if have_kiss_icp() else None
     reference = {} if ref is None else {"LiDAR-only (KISS-ICP)": ref}
@@ -146,7 +150,7 @@ def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: Session
         table.add_column(col, justify="left" if col == "estimate" else "right")
     for name, P in {**runs, **reference}.items():
         off = [] if ref is None else ["" if name in reference else f"{np.linalg.norm(P[-1, :3, 3] - ref[-1, :3, 3]):.2f}"]
-        table.add_row(name, f"{_path_length(P):.2f}", "(" + ", ".join(f"{v:.2f}" for v in P[-1, :3, 3]) + ")", *off)
+        table.add_row(name, f"{path_length(P):.2f}", "(" + ", ".join(f"{v:.2f}" for v in P[-1, :3, 3]) + ")", *off)
     out.print(table)
     plot = plot_trajectories(out_dir / "real_r0926.png", {**reference, **runs}, title="real KITTI 2011_09_26 (no GT)")
     out.print("No ground truth exists for these frames: "
@@ -155,11 +159,6 @@ def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: Session
               + ("; the bundled model was trained on synthetic data only and is not meant for real KITTI accuracy."
                  if bundled else "."), highlight=False)
     console.print(f"poses: {path} (--method direct: {direct_path.name})\nplot:  {plot}", highlight=False)
-
-
-def _path_length(P: np.ndarray) -> float:
-    """Metres travelled along (N,4,4) poses: what the real frames, without ground truth, compare."""
-    return float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum())
 
 
 def _render(seq_dir: Path, d: DemoDrive) -> None:
@@ -178,15 +177,14 @@ def _render(seq_dir: Path, d: DemoDrive) -> None:
         generate(seq_dir, d.cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
 
 
-def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, viz: Path | None,
-           every: int) -> tuple[SequenceResult, SequenceResult, RunSummary]:
+def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, classical: DirectConfig,
+           viz: Path | None, every: int) -> tuple[SequenceResult, SequenceResult, RunSummary]:
     """The model and, beside it, its classical mode (the same solver with every point weighted 1)
     on the drive: both scored against its ground truth, and the model's run summary (latency);
     with `viz`, the run's pictures of every `every`-th frame (`d3lvo run --viz`) there."""
-    from d3lvo_deploy.direct import DirectConfig, DirectOdometry
+    from d3lvo_deploy.direct import DirectOdometry
     from d3lvo_deploy.evaluation import evaluate
-    from d3lvo_deploy.manifest import load_manifest
-    from d3lvo_deploy.pipeline import RunConfig, run_sequence
+    from d3lvo_deploy.pipeline import RunConfig
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
 
@@ -195,19 +193,25 @@ def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, viz:
         for old in viz.glob("*.png"):
             old.unlink()
     poses_path, direct_path = out_dir / f"{d.name}_poses.txt", out_dir / f"{d.name}_direct.txt"
-    with frame_progress() as bar:
-        task = bar.add_task(f"run, {d.label}", total=len(seq), rate="")
-        summary = run_sequence(seq, model_dir, RunConfig(out=poses_path, overwrite=True, viz_dir=viz,
-                                                         viz_every=every), sc,
-                               progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
-    with frame_progress() as bar:
-        task = bar.add_task(f"direct, {d.label}", total=len(seq), rate="")
-        run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
-                     odometry=DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(model_dir)["model_config"])),
-                     progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
+    summary = _run(f"run, {d.label}", seq, model_dir,
+                   RunConfig(out=poses_path, overwrite=True, viz_dir=viz, viz_every=every), sc)
+    _run(f"direct, {d.label}", seq, None, RunConfig(out=direct_path, overwrite=True),
+         odometry=DirectOdometry(seq.calib, classical))
     name = f"seed {d.cfg.seed}"
     return (evaluate(seq.ground_truth, read_poses(poses_path), name=name),
             evaluate(seq.ground_truth, read_poses(direct_path), name=name), summary)
+
+
+def _run(label: str, seq: KittiSequence, model_dir: Path | None, rc, sc: SessionConfig | None = None,
+         odometry=None) -> RunSummary:
+    """`run_sequence` under a progress bar labelled `label`."""
+    from d3lvo_deploy.pipeline import run_sequence
+
+    with frame_progress() as bar:
+        task = bar.add_task(label, total=len(seq), rate="")
+        engine = {} if sc is None else {"sc": sc}  # the direct tracker runs no engine
+        return run_sequence(seq, model_dir, rc, **engine, odometry=odometry,
+                            progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
 
 
 def _rendered(seq_dir: Path, cfg) -> bool:

@@ -106,7 +106,8 @@ def align_estimate(gt: np.ndarray, est: np.ndarray, mode: str) -> tuple[np.ndarr
 SCALE_HINT = 1.5  # path-length ratio beyond which a result looks up to scale rather than wrong
 
 
-def _path_length(poses: np.ndarray) -> float:
+def path_length(poses: np.ndarray) -> float:
+    """Metres travelled along (N,4,4) poses."""
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
 
 
@@ -193,7 +194,7 @@ def evaluate(gt: Trajectory | np.ndarray, est: Trajectory | np.ndarray, align: s
     est_rel = relative(est.poses[0], est.poses)
     aligned, scale = align_estimate(gt_rel[ids], est_rel, align)
     if align in ("none", "6dof"):
-        ratio = _path_length(est_rel) / max(_path_length(gt_rel[ids]), 1e-9)
+        ratio = path_length(est_rel) / max(path_length(gt_rel[ids]), 1e-9)
         if not 1 / SCALE_HINT < ratio < SCALE_HINT:
             notes.append(f"the estimate's path is {ratio:.3g}x the ground truth's: up to scale (monocular)? "
                          "score it with --align 7dof")
