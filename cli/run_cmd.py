@@ -55,7 +55,7 @@ def latency_table(summary) -> Table:
 # poses (where they are written, resume and pictures do not)
 RUN_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "gt", "onnx", "method",
             "start", "end", "provider", "threads", "backend", "ov_precision", "optimization", "realtime", "viz_every",
-            "pipeline", "classical_beside")
+            "pipeline", "classical_beside", "max_accel")
 
 
 # what belongs to the recording a config repeats: another recording given on the command line
@@ -147,6 +147,10 @@ def run_command(
                                           "has the classical stage (the bundled one) and two cores or more: solve the "
                                           "classical mode on a thread of its own while completion and encoder run, or "
                                           "in the flow+pose graph's batch (the same poses)."),
+    max_accel: float = typer.Option(0.0, "--max-accel", help="The motion guard (either method): a solved motion whose "
+                                    "speed differs from the last one's by more than this many m/s^2 times the time "
+                                    "between the frames keeps the last motion instead (a car brakes at up to ~10 "
+                                    "m/s^2; 30 was chosen on validation drives); 0, the default, turns it off."),
 ) -> None:
     """Estimate the trajectory of a recording with the ONNX stages (no torch needed).
 
@@ -245,13 +249,17 @@ def _check_ground_truth(seq, given: bool) -> None:
 def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_topic, info_topic, max_dt, out_dir,
          out_path, pose_fmt, config, sequences, engine, workers, address, chunk, overlap, onnx, start, end, resume,
          overwrite, viz, viz_every, rerun, gt, plot, provider, threads, backend, ov_precision, optimization, realtime,
-         pipeline, method, classical_beside) -> None:
+         pipeline, method, classical_beside, max_accel) -> None:
+    from d3lvo_deploy.motion_guard import MotionGuard
     from d3lvo_deploy.onnx_model import SessionConfig
     from d3lvo_deploy.pipeline import RunConfig, execute_run, prepare_run
     from d3lvo_deploy.results import CONFIG, ResultsFolder, default_folder, record_file
 
     if method not in ("d3lvo", "direct"):
         raise D3LVOInputError(None, f"--method must be d3lvo or direct, not {method!r}")
+    if not (np.isfinite(max_accel) and max_accel >= 0):
+        raise D3LVOInputError(None, f"--max-accel must be 0 (off) or a positive number of m/s^2, not {max_accel:g}")
+    guard = MotionGuard(max_accel=float(max_accel))
     if out_path is not None and out_dir is not None:
         raise D3LVOInputError(None, "--out writes one trajectory file and --out-dir a results folder: name one of them")
     if out_path is None and pose_fmt.lower() != "kitti" and sequences is None:
@@ -270,7 +278,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if sequences is not None:
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")
-        return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap, backend)
+        return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap, backend,
+                         guard)
     if resume and out_path is None and out_dir is None:
         raise D3LVOInputError(None, "--resume continues a results folder: name it with --out-dir "
                                     "(results/latest is the newest)")
@@ -291,7 +300,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
         # the classical mode of the model the run would use (the bundled one by default): its
         # point selection and solver settings, with no learned confidence
         model_config = load_manifest(resolve_model_dir(onnx))["model_config"]
-        odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(model_config)), None
+        odometry, model_dir = DirectOdometry(seq.calib, DirectConfig.of_model(model_config), guard), None
         if sc.engine_threads:  # --threads (or OMP_NUM_THREADS) for OpenCV's pyramids and gradients too
             import cv2
 
@@ -325,7 +334,8 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if resume:
         _check_resume(record_path, out_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx))
     rc = RunConfig(out=out_path, fmt=pose_fmt, start=start, end=end, resume=resume, overwrite=overwrite,
-                   realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun, pipeline=pipeline)
+                   realtime=realtime, viz_dir=viz, viz_every=viz_every, rerun_path=rerun, pipeline=pipeline,
+                   guard=guard)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         # every argument, the output file and the model are checked before the progress bar
@@ -344,7 +354,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     record.update(threads=sc.engine_threads,  # the count used
                   backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                   optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline,
-                  classical_beside=classical_beside)
+                  classical_beside=classical_beside, max_accel=float(max_accel))
     if folder is not None:
         folder.create()
         if overwrite:  # an earlier run's outputs are not this run's, whether it finishes or not
@@ -406,10 +416,17 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     out.print(throughput_line(summary), highlight=False)
     out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, {seq.frame_label}, first pose identity)",
               highlight=False)
+    if summary.guarded:
+        out.print(guard_line(summary.guarded, summary.frames - max(summary.resumed_from, 1), max_accel), highlight=False)
     rrd = plan.rc.rerun_path
     if rrd is not None and (folder is None or Path(rrd).parent.resolve() != folder.path.resolve()):
         console.print(f"Rerun recording in {rrd} (open it with: rerun {rrd})", highlight=False)  # else the folder's list
     _finish(seq, folder, out_path, plan.rc.fmt, start, end, plot, label, summary)
+
+
+def guard_line(guarded: int, pairs: int, max_accel: float) -> str:
+    return (f"motion guard: the previous motion kept on {guarded} of {pairs} pairs, where the solved speed changed "
+            f"by more than {max_accel:g} m/s^2 (--max-accel)")
 
 
 def _name(seq) -> str:
@@ -538,7 +555,7 @@ def _print_warnings(caught) -> None:
                                                 "frame, not shown"), highlight=False)
 
 
-def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend) -> None:
+def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend, guard) -> None:
     import os
     import time
 
@@ -581,7 +598,7 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     with frame_progress() as bar:
         task = bar.add_task(f"{engine} x{workers}", total=total, rate="chunks")
         residuals = run_many(dirs, resolve_model_dir(onnx), out_dir, engine=engine, workers=workers, chunk=chunk,
-                             overlap=overlap, address=address, sc=sc, on_chunk=lambda c: bar.advance(task),
+                             overlap=overlap, address=address, sc=sc, on_chunk=lambda c: bar.advance(task), guard=guard,
                              on_sequence=lambda n, p, r: console.print(f"{n}: {p} (overlap residual {r:.1e} m)",
                                                                          highlight=False))
     console.print(f"{len(residuals)} sequences in {time.perf_counter() - t0:.1f} s", highlight=False)

@@ -11,6 +11,8 @@ fixed threshold that suits one exposure and one amount of noise. With `fine_rest
 level is also solved alone from the start, and that motion is kept where it explains the points
 better (`consensus_gain`), or with `restart_depth` where it fits frame t's own LiDAR scan better
 (`lidar_depth_error`): a quarter-size level can hold a wrong minimum the finest cannot leave.
+With a `motion_guard` (off by default), a step whose speed no car reaches from the last one's is
+replaced by the last.
 
 `DirectOdometry.register_frame(image, points)` reads as the algorithm; it has the streaming
 interface of `Odometry` (`step`, `prime`, `reset`, `pose`), so `d3lvo run --method direct`
@@ -29,6 +31,7 @@ from .blas import one_blas_thread
 from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
+from .motion_guard import MotionGuard, guard_motion
 from .odometry import (FrameTiming, as_calib, calib_source, check_first_frame, check_frame_size, check_image,
                        clean_scan, rigid_pose)
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
@@ -306,6 +309,7 @@ class DirectOdometry:
 
     calib: Calib
     cfg: DirectConfig = field(default_factory=DirectConfig)
+    guard: MotionGuard = field(default_factory=MotionGuard)  # `motion_guard`: off unless given
 
     def __post_init__(self) -> None:
         if len(self.cfg.iterations) != self.cfg.levels:
@@ -326,6 +330,9 @@ class DirectOdometry:
         self.motion2 = np.eye(4)  # last image_2 motion: the constant-velocity start
         self.cold = True  # no previous motion yet: the first pair starts from `cold_start`'s guesses
         self.frames = 0
+        self.motion_dt = self.guard.period  # the time of `motion2`
+        self._prev_stamp: float | None = None
+        self.guarded = 0  # pairs where the motion guard kept the previous motion
 
     def _frame(self, image: np.ndarray, points: np.ndarray | None) -> TrackedFrame:
         t0 = time.perf_counter()
@@ -345,28 +352,33 @@ class DirectOdometry:
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)
 
-    def register_frame(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
-        """Track frame t against frame t-1's LiDAR points; returns the image_2 motion A (t in t-1)."""
+    def register_frame(self, image: np.ndarray, points: np.ndarray | None, stamp: float | None = None) -> np.ndarray:
+        """Track frame t against frame t-1's LiDAR points; returns the image_2 motion A (t in t-1).
+        `stamp`: frame t's time in seconds, for the motion guard."""
         cur = self._frame(image, points)
         t0 = time.perf_counter()
         A = np.eye(4)
+        dt = self.guard.interval(self._prev_stamp, stamp)
         if self._prev is not None and len(self._prev.points):
             if self.cold:
                 A = first_motion(self._prev, cur, self.cfg)
             else:
                 A = track(self._prev, cur, self.motion2, self.cfg)  # constant velocity
-            self.motion2, self.cold = A, False
+                A, held = guard_motion(A, dt, self.motion2, self.motion_dt, self.guard)
+                self.guarded += held
+            self.motion2, self.motion_dt, self.cold = A, dt, False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = cur
+        self._prev_stamp = None if stamp is None else float(stamp)
         return A
 
-    def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
+    def step(self, image: np.ndarray, points: np.ndarray | None, stamp: float | None = None) -> np.ndarray:
         """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates. numpy's BLAS
         on one thread, as the network's frame work (`blas`): its products are small, and idle
-        BLAS threads would spin on the other core."""
+        BLAS threads would spin on the other core. `stamp` as `Odometry.step`'s."""
         first = self._prev is None
         with one_blas_thread():
-            A = self.register_frame(image, points)
+            A = self.register_frame(image, points, stamp)
         if not first:
             self.relative = change_frame(A, self.calib.T_cam0_cam2)
             self.pose = self.pose @ self.relative
@@ -374,13 +386,16 @@ class DirectOdometry:
         return self.pose.copy()
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
-              previous_pose: np.ndarray | None = None) -> None:
+              previous_pose: np.ndarray | None = None, stamp: float | None = None,
+              previous_stamp: float | None = None) -> None:
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         self._prev = self._frame(image, points)
+        self._prev_stamp = None if stamp is None else float(stamp)
         self.pose = pose
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = change_frame(self.relative, self.calib.T_cam2_cam0)
+            self.motion_dt = self.guard.interval(previous_stamp, stamp)
             self.cold = False
         self.frames += 1

@@ -23,6 +23,7 @@ from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, is_rigid, relative
+from .motion_guard import MotionGuard, guard_motion
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                      finest_level, point_config, solver_feeds, textured_points)
@@ -133,6 +134,7 @@ class PreparedFrame:
     inv: np.ndarray | None  # (1,1,h,w) sparse inverse depth (or IP-Basic's), None in rgb mode
     solver: SolverFrame | None  # the point solver's grey image and points
     project_ms: float
+    stamp: float | None = None  # the frame's time in seconds (the motion guard's dt), if known
 
 
 @dataclass
@@ -159,9 +161,11 @@ class Odometry:
     scan_source = "scan"  # what a scan warning names (`d3lvo run` sets the frame)
 
     def __init__(self, model_dir: str | Path, calib: Calib | str | Path, sc: SessionConfig = SessionConfig(),
-                 model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig()):
+                 model: StageModel | None = None, cold_start: ColdStartConfig = ColdStartConfig(),
+                 guard: MotionGuard = MotionGuard()):
         self.calib = as_calib(calib)  # before the model loads
         self.cold_start = cold_start
+        self.guard = guard
         self.model = model if model is not None else StageModel(model_dir, sc)
         self.calib_source, self.fit_checked = calib_source(calib), False  # `check_first_frame`
         self.pre: FramePreprocessor | None = None
@@ -225,6 +229,12 @@ class Odometry:
         self.motion2_classical: np.ndarray | None = None
         self.cold = True  # no previous motion yet
         self.frames = 0
+        # the motion guard's state: the last kept image_2 motion (None until a pair has one), its
+        # time, the last frame's stamp, and how many pairs the guard replaced
+        self.kept2: np.ndarray | None = None
+        self.kept_dt = self.guard.period
+        self._prev_stamp: float | None = None
+        self.guarded = 0
 
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
         h, w = image.shape[:2]
@@ -234,16 +244,20 @@ class Odometry:
             check_frame_size(image, self.pre.view.src_width, self.pre.view.src_height)
         return self.pre
 
-    def prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int | None = None) -> "PreparedFrame":
+    def prepare(self, image: np.ndarray, points: np.ndarray | None, threads: int | None = None,
+                stamp: float | None = None) -> "PreparedFrame":
         """The CPU half of a frame, before any network: RGB input, LiDAR projection and IP-Basic,
         the solver's points. Independent of the previous frame, so a pipeline runs it for frame
         t+1 on another thread while the network works on frame t (after the first frame, which
         fixes the view), with `threads` 1. With 2 (`threads` defaults to `self.prepare_threads`,
         from `SessionConfig.preparing_threads`) the solver's frame is made on a second thread
-        beside the network's inputs; the same arrays either way."""
+        beside the network's inputs; the same arrays either way. `stamp`: the frame's time in
+        seconds, for the motion guard (frames `MotionGuard.period` apart where not given)."""
         check_image(image)
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
-            return self._prepare(image, points, self.prepare_threads if threads is None else threads)
+            frame = self._prepare(image, points, self.prepare_threads if threads is None else threads)
+        frame.stamp = None if stamp is None else float(stamp)
+        return frame
 
     def _beside(self, job: Callable[[], Any], threads: int) -> Callable[[], Any]:
         """What gives `job`'s result: with `threads` > 1 the job starts now on the helper thread
@@ -281,9 +295,9 @@ class Odometry:
         stack = finest()
         return textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, stack[0], self.points, (stack[1], stack[2]))
 
-    def encode(self, image: np.ndarray, points: np.ndarray | None) -> dict[str, np.ndarray]:
+    def encode(self, image: np.ndarray, points: np.ndarray | None, stamp: float | None = None) -> dict[str, np.ndarray]:
         """Frame -> encoder outputs (the per-frame half of the work)."""
-        return self.encode_prepared(self.prepare(image, points))
+        return self.encode_prepared(self.prepare(image, points, stamp=stamp))
 
     def encode_prepared(self, frame: "PreparedFrame") -> dict[str, np.ndarray]:
         enc, t = self.encode_timed(frame)
@@ -310,11 +324,14 @@ class Odometry:
         t["encoder"] = (time.perf_counter() - t0) * 1000
         if frame.solver is not None:
             enc["solver_frame"] = frame.solver
+        enc["stamp"] = frame.stamp
         return enc, t
 
-    def step(self, image: np.ndarray, points: np.ndarray | None) -> np.ndarray:
-        """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates."""
-        return self.step_prepared(self.prepare(image, points))
+    def step(self, image: np.ndarray, points: np.ndarray | None, stamp: float | None = None) -> np.ndarray:
+        """Add a frame; returns its 4x4 cam0 pose in the first frame's coordinates. `stamp`: its time
+        in seconds (the sensor's), which the motion guard reads; without, frames are taken to be
+        `MotionGuard.period` apart."""
+        return self.step_prepared(self.prepare(image, points, stamp=stamp))
 
     def step_prepared(self, frame: "PreparedFrame", on_encoded: Callable[[], None] | None = None) -> np.ndarray:
         """`step` on a frame `prepare` has already done (by a pipeline's reader thread).
@@ -361,22 +378,35 @@ class Odometry:
             A2 = out["matrix"][0].astype(np.float64)
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
+            A2, held = self._guarded(A2, enc.get("stamp"))
             self.relative = change_frame(A2, self.calib.T_cam0_cam2)
             before, self.pose = self.pose, self.pose @ self.relative
             # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
             # that an interrupted and resumed run starts every pair where an uninterrupted one does
             self.motion2 = self._motion_between(before, self.pose)
             start = out.get("start_next")
-            if start is not None and np.all(np.isfinite(start)):
+            if not held and start is not None and np.all(np.isfinite(start)):
                 self.motion2 = start[0].astype(np.float64)
             classical = out.get(CLASSICAL_NEXT_OUTPUT)
-            if classical is not None and np.all(np.isfinite(classical)):
+            if held:  # both solves of the next pair start from the motion kept
+                self.motion2_classical = None if classical is None else self.motion2
+            elif classical is not None and np.all(np.isfinite(classical)):
                 self.motion2_classical = classical[0].astype(np.float64)
             self.cold = False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
+        self._prev_stamp = enc.get("stamp")
         self.frames += 1
         return self.pose.copy()
+
+    def _guarded(self, A2: np.ndarray, stamp: float | None) -> tuple[np.ndarray, bool]:
+        """The pair's image_2 motion A2 through the motion guard (`motion_guard`): the previous kept
+        motion where A2's speed is physically out of reach of it; whether it was replaced."""
+        dt = self.guard.interval(self._prev_stamp, stamp)
+        A2, held = guard_motion(A2, dt, self.kept2, self.kept_dt, self.guard)
+        self.kept2, self.kept_dt = A2, dt
+        self.guarded += held
+        return A2, held
 
     def _flow_pose(self, enc: dict, beside: Future | None = None) -> dict[str, np.ndarray]:
         """The flow+pose stage on (previous frame, `enc`); with the classical mode solved beside,
@@ -406,19 +436,24 @@ class Odometry:
         return {**camera_inputs(self.pre.K, start), **feeds}
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
-              previous_pose: np.ndarray | None = None, start: np.ndarray | None = None) -> None:
+              previous_pose: np.ndarray | None = None, start: np.ndarray | None = None,
+              stamp: float | None = None, previous_stamp: float | None = None) -> None:
         """Resume: take frame t-1 and its known pose without estimating anything; with the pose
         before it, the next pair starts from that motion, as an uninterrupted run would (or from
-        `start`, the saved `start_state`, where the graph `keeps_own_start`)."""
+        `start`, the saved `start_state`, where the graph `keeps_own_start`), and the motion guard
+        compares the next pair with it (the two frames' stamps give its time)."""
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         if start is not None:  # one 4x4, or `start_state`'s (K,4,4)
             start = np.stack([rigid_pose(S, "prime's start") for S in (start if np.ndim(start) == 3 else [start])])
-        self._prev = self.encode(image, points)
+        self._prev = self.encode(image, points, stamp)
+        self._prev_stamp = self._prev["stamp"]
         self.pose = pose
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)
+            self.kept2 = self.motion2.copy()
+            self.kept_dt = self.guard.interval(previous_stamp, stamp)
             self.cold = False
         if start is not None:
             self.motion2 = start[0]

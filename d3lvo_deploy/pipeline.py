@@ -21,6 +21,7 @@ import numpy as np
 
 from .calib import check_fit
 from .errors import D3LVOInputError
+from .motion_guard import MotionGuard
 from .odometry import STAGES, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .poses import format_kitti_line, format_tum_line, read_poses
@@ -49,6 +50,7 @@ class RunSummary:
     wall_s: float = 0.0  # from the first frame read to the last pose written
     pipelined: bool = False
     deep: bool = False  # pipelined three deep: the next frame also completed and encoded ahead
+    guarded: int = 0  # pairs of this run where the motion guard kept the previous motion
 
     @property
     def throughput(self) -> float:
@@ -84,6 +86,9 @@ class RunConfig:
     # OpenVINO, two fifths on onnxruntime), each frame's latency a little longer
     # (docs/performance.md): off by default, the switch for a CPU that falls behind
     pipeline: bool = False
+    # a solved motion whose speed is out of a car's reach of the last one's is replaced by the last
+    # (`motion_guard`; off by default); a tracker given to the run brings its own
+    guard: MotionGuard = field(default_factory=MotionGuard)
 
 
 def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
@@ -248,7 +253,7 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
                            splits=opens and sc.pipelined(3) != sc)
     if depth > 1 and opens:
         sc = sc.pipelined(depth)
-    odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model)
+    odo = odometry if odometry is not None else Odometry(model_dir, seq.calib, sc, model=model, guard=rc.guard)
     odo.fit_checked = True  # above, against the recording's own first frame and calibration file
     return RunPlan(seq=seq, rc=rc, odo=odo, out=out, n=n, done=done, depth=depth, sc=sc if opens else None)
 
@@ -314,7 +319,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             extra = {} if saved is None else {"start": saved[-1]}
             odo.scan_source = f"frame {seq.frame_names[k]}'s scan"
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
-                      done[-2] if len(done) >= 2 else None, **extra)
+                      done[-2] if len(done) >= 2 else None, **extra, stamp=float(seq.times[k]),
+                      previous_stamp=float(seq.times[k - 1]) if len(done) >= 2 else None)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
                 state = odo.start_state()
                 rest = [np.tile(np.eye(4), (len(state), 1, 1))] * (len(done) - 1)
@@ -341,7 +347,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 points = seq.scan(i) if odo.needs_scan else None
                 read_ms = (time.perf_counter() - t0) * 1000
                 # one thread: this reader has one core beside the network
-                prepared = odo.prepare(image, points, threads=1) if pipelined and odo.pre is not None else None
+                prepared = (odo.prepare(image, points, threads=1, stamp=float(seq.times[i]))
+                            if pipelined and odo.pre is not None else None)
             except D3LVOInputError as e:
                 raise frame_error(e, i) from None
             encoded = odo.encode_timed(prepared) if deep and prepared is not None else None
@@ -376,7 +383,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     pose = odo.step_prepared(prepared, on_encoded=read_next)
                 else:
                     try:
-                        pose = odo.step(image, points)
+                        pose = odo.step(image, points, float(seq.times[i]))
                     except D3LVOInputError as e:  # a frame unlike the others (its size)
                         raise frame_error(e, i) from None
                     read_next()  # the first frame has fixed the view: from here on, prepared ahead
@@ -397,6 +404,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 summary.latencies_ms.setdefault("read", []).append(read_ms)
                 summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
                 summary.wall_s = time.perf_counter() - t_wall0
+                summary.guarded = getattr(odo, "guarded", 0)
                 if progress is not None:
                     progress(j + 1, n, odo.last_timing.total + read_ms)
         finally:

@@ -24,6 +24,7 @@ import numpy as np
 
 from .errors import D3LVOInputError
 from .geometry import se3_inv
+from .motion_guard import MotionGuard
 from .odometry import Odometry
 from .onnx_model import SessionConfig, StageModel
 from .pipeline import check_recording_fit, format_kitti
@@ -38,6 +39,7 @@ class Chunk:
     seq_dir: str
     start: int
     end: int  # exclusive
+    guard: MotionGuard = MotionGuard()
 
 
 def plan_chunks(n_frames: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
@@ -82,13 +84,13 @@ def _model(model_dir: str, sc: SessionConfig) -> StageModel:
 
 def run_chunk(c: Chunk, model_dir: str, sc: SessionConfig) -> tuple[Chunk, np.ndarray]:
     seq = KittiSequence.open(c.seq_dir)
-    odo = Odometry(model_dir, seq.calib, sc, model=_model(model_dir, sc))
+    odo = Odometry(model_dir, seq.calib, sc, model=_model(model_dir, sc), guard=c.guard)
     odo.fit_checked = True  # `run_many` checked each sequence's first frame before fanning out
     need_scan = odo.model.depth_input != "none"
     poses = []
     for i in range(c.start, c.end):
         odo.scan_source = f"{c.seq} frame {seq.frame_names[i]}'s scan"  # what a scan warning names
-        poses.append(odo.step(seq.image(i), seq.scan(i) if need_scan else None))
+        poses.append(odo.step(seq.image(i), seq.scan(i) if need_scan else None, float(seq.times[i])))
     return c, np.stack(poses)
 
 
@@ -178,7 +180,8 @@ def check_engine(engine: str, workers: int) -> None:
 def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, engine: str = "local", workers: int = 2,
              chunk: int = 1000, overlap: int = 2, address: str | None = None, sc: SessionConfig | None = None,
              on_chunk: Callable[[Chunk], None] | None = None,
-             on_sequence: Callable[[str, Path, float], None] | None = None) -> dict[str, float]:
+             on_sequence: Callable[[str, Path, float], None] | None = None,
+             guard: MotionGuard = MotionGuard()) -> dict[str, float]:
     """Run every sequence; returns {sequence: overlap residual (m)}. Trajectories go to out_dir/NAME.txt."""
     check_engine(engine, workers)
     model_dir = str(Path(model_dir).resolve())
@@ -196,7 +199,7 @@ def run_many(seq_dirs: dict[str, Path], model_dir: str | Path, out_dir: Path, en
         check_recording_fit(seq, 0, f"{name}/{seq.frame_names[0]}")  # once per sequence, not per chunk
         ranges = plan_chunks(len(seq), chunk, overlap)
         expected[name] = len(ranges)
-        chunks += [Chunk(name, str(d), s, e) for s, e in ranges]
+        chunks += [Chunk(name, str(d), s, e, guard) for s, e in ranges]
     got: dict[str, list[tuple[int, np.ndarray]]] = {n: [] for n in seq_dirs}
     residuals = {}
     engine_fn = {"sequential": _sequential, "local": _local, "ray": _ray}[engine]

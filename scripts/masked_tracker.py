@@ -1,13 +1,14 @@
 """The classical tracker with the points an oracle knows to be untrustworthy removed.
 
-    .venv/bin/python scripts/masked_tracker.py DRIVE OUT.txt [--shadows]
+    .venv/bin/python scripts/masked_tracker.py DRIVE OUT.txt [--shadows] [--max-accel A]
 
 Runs `d3lvo run DRIVE --method direct` (the bundled model's classical mode) but drops, before each
 pair, frame t-1's LiDAR points whose pixel the drive's `motion_2/` marks (they lie on a moving
 vehicle) and, with `--shadows`, also those `shadow_2/` marks (a moving vehicle's shadow changes
 their shading by frame t). What a perfect confidence, used as a gate, would give: the bound the
 learned one is measured against, and whether a kind of pixel is worth teaching it
-(docs/model-card.md). Drives rendered with `d3lvo synth --traffic` only.
+(docs/model-card.md). Drives rendered with `d3lvo synth --traffic` only. `--max-accel` as `d3lvo
+run`'s (the motion guard, off by default).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import load_manifest
+from d3lvo_deploy.motion_guard import MotionGuard
 from d3lvo_deploy.points import project
 from d3lvo_deploy.poses import write_poses
 from d3lvo_deploy.results import make_output_folder
@@ -49,28 +51,36 @@ def without(f: TrackedFrame, bad: np.ndarray) -> TrackedFrame:
     return TrackedFrame(f.levels, f.points[~bad[uv[:, 1], uv[:, 0]]], f.depth)
 
 
-def main(drive: Path, out: Path, shadows: bool) -> None:
+def main(drive: Path, out: Path, shadows: bool, guard: MotionGuard) -> None:
     seq = KittiSequence.open(drive)
-    odo = DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]))
+    odo = DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]), guard)
     frame = odo._frame
 
     def masked(image: np.ndarray, points: np.ndarray) -> TrackedFrame:
         return without(frame(image, points), untrusted(drive, odo.frames, shadows))
 
     odo._frame = masked
-    write_poses(out, np.array([odo.step(seq.image(i), seq.scan(i)) for i in range(len(seq))]))
+    write_poses(out, np.array([odo.step(seq.image(i), seq.scan(i), float(seq.times[i])) for i in range(len(seq))]))
     print(f"{len(seq)} poses in {out}")
 
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if a != "--shadows"]
-    if len(args) != 2 or any(a.startswith("--") for a in args):
+    guard = MotionGuard()
+    if "--max-accel" in args:
+        k = args.index("--max-accel")
+        try:
+            guard = MotionGuard(max_accel=float(args[k + 1]))
+        except (IndexError, ValueError):
+            sys.exit(__doc__)
+        del args[k:k + 2]
+    if len(args) != 2 or any(a.startswith("--") for a in args) or guard.max_accel < 0:
         sys.exit(__doc__)
     try:
         if Path(args[1]).is_dir():
             raise D3LVOInputError(Path(args[1]), "is a folder; OUT.txt names the trajectory file to write")
         KittiSequence.open(args[0])  # the drive, then where its poses go, before it is tracked
         make_output_folder(Path(args[1]).parent, "OUT.txt's folder", "the trajectory")
-        main(Path(args[0]), Path(args[1]), "--shadows" in sys.argv)
+        main(Path(args[0]), Path(args[1]), "--shadows" in sys.argv, guard)
     except D3LVOInputError as e:
         sys.exit(f"error: {e}")

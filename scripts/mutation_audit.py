@@ -193,9 +193,9 @@ MUTATIONS = [
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",)),
     Mutation("frames prepared with numpy's BLAS threads left free", "d3lvo_deploy/odometry.py",
              "        with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)\n"
-             "            return self._prepare(",
+             "            frame = self._prepare(",
              "        if True:\n"
-             "            return self._prepare(",
+             "            frame = self._prepare(",
              ("tests/test_runtime.py::test_frame_preparation_holds_blas_to_one_thread",)),
     Mutation("OpenVINO's solver steps take the rotation Jacobian's third row with the wrong sign", "models/point_solver.py",
              "zt * au - x * az, x * av - y * au, nr]", "zt * au - x * az, y * au - x * av, nr]",
@@ -221,7 +221,7 @@ MUTATIONS = [
              "threads=1 if depth == 3 else self.threads,",
              ("tests/test_backends.py::test_a_pipelined_run_gives_the_flowpose_stage_one_thread_fewer",)),
     Mutation("a pipeline's reader prepares on the Odometry's own thread count", "d3lvo_deploy/pipeline.py",
-             "odo.prepare(image, points, threads=1)", "odo.prepare(image, points)",
+             "odo.prepare(image, points, threads=1,", "odo.prepare(image, points,",
              ("tests/test_runtime.py::test_pipelined_run_writes_the_sequential_poses",)),
     Mutation("the export reuses a solver block across the two graphs' sampling layouts", "export/solver_loop.py",
              "               dynamic_batch, gathering())", "               dynamic_batch)",
@@ -276,6 +276,14 @@ MUTATIONS = [
     Mutation("a KITTI line whose 3x3 block is no rotation is read as a pose", "d3lvo_deploy/poses.py",
              "        bad = (off > ROTATION_TOLERANCE) | (det <= 0)", "        bad = np.zeros(len(R), bool)",
              ("tests/test_poses_io.py::test_bad_files_name_the_file",)),
+    Mutation("the motion guard holds the previous step, not the previous speed, over a longer gap",
+             "d3lvo_deploy/motion_guard.py",
+             "    return scaled_motion(previous, dt / previous_dt), True", "    return previous, True",
+             ("tests/test_motion_guard.py::test_the_guard_reads_speeds_so_a_dropped_frame_is_no_jump",)),
+    Mutation("a guarded network pair's successor starts from the graph's own start", "d3lvo_deploy/odometry.py",
+             "            if not held and start is not None and np.all(np.isfinite(start)):",
+             "            if start is not None and np.all(np.isfinite(start)):",
+             ("tests/test_motion_guard.py::test_network_run_keeps_the_previous_motion_and_starts_the_next_pair_from_it",)),
 ]
 
 

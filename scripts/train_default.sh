@@ -563,3 +563,21 @@ for spec in "910 5" "911 3" "912 7" "913 9" "914 4"; do
   OMP_NUM_THREADS=1 .venv/bin/python -m models.pair_eval d3lvo_deploy/default_model/default.pt "$OUT/data/own_$seed" \
     --pairs 219
 done
+# The motion guard (`d3lvo run --max-accel A`: the previous motion kept where a solved speed jumps by
+# more than A m/s^2), chosen for the classical mode on the six validation traffic drives, then
+# scored once on the held-out traffic drives and the five on the synthesizer's own path, both
+# methods; it ships off (docs/evaluation.md, "The motion guard")
+for d in "$OUT"/data/val_traffic*; do
+  for a in 0 20 25 30 40; do
+    "$D3LVO" run "$d" --method direct --max-accel "$a" --out "$OUT/eval/guard_direct_${a}_$(basename "$d").txt" --overwrite
+  done
+  for a in 0 30; do
+    "$D3LVO" run "$d" --backend onnxruntime --threads 1 --max-accel "$a" \
+      --out "$OUT/eval/guard_net_${a}_$(basename "$d").txt" --overwrite
+  done
+done
+for d in "$OUT"/data/traffic_3?? "$OUT"/data/own_91? "$OUT"/data/static_2?? "$OUT"/data/heldout_?? "$OUT"/data/demo_909; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --max-accel 30 --out "$OUT/eval/guard_net_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --method direct --max-accel 30 --out "$OUT/eval/guard_direct_$(basename "$d").txt" --overwrite
+done
+.venv/bin/python scripts/pair_steps.py "$OUT/data/traffic_323" 62 82

@@ -1,0 +1,150 @@
+"""The motion guard: hand-built motions whose speed change is or is not within a car's reach, and
+both trackers keeping the previous motion where it is not (a resumed run as an uninterrupted one)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from d3lvo_deploy import direct
+from d3lvo_deploy.direct import DirectOdometry
+from d3lvo_deploy.geometry import axis_angle_to_rot, make_se3, relatives, rotation_angle
+from d3lvo_deploy.motion_guard import CHOSEN_MAX_ACCEL, MotionGuard, guard_motion, scaled_motion
+from d3lvo_deploy.sequence import KittiSequence
+
+
+def forward(metres: float, yaw_deg: float = 0.0) -> np.ndarray:
+    return make_se3(axis_angle_to_rot(np.array([0.0, np.radians(yaw_deg), 0.0])), [0.0, 0.0, metres])
+
+
+def test_a_step_out_of_a_cars_reach_keeps_the_previous_motion():
+    g = MotionGuard(max_accel=30.0)
+    assert not MotionGuard().enabled  # off unless asked for
+    last = forward(1.0, 1.0)  # 10 m/s over 0.1 s
+    # 0.2 m in 0.1 s: 2 m/s, a change of 8 m/s in 0.1 s (80 m/s^2): replaced by the last motion
+    kept, held = guard_motion(forward(0.2), 0.1, last, 0.1, g)
+    assert held and np.allclose(kept, last)
+    # 0.75 m: 2.5 m/s less in 0.1 s (25 m/s^2, within 30): kept as solved
+    step = forward(0.75, -0.5)
+    kept, held = guard_motion(step, 0.1, last, 0.1, g)
+    assert not held and kept is step
+    # faster by 3.5 m/s: as out of reach as slower
+    assert guard_motion(forward(1.35), 0.1, last, 0.1, g)[1]
+    # no motion before it (a run's first pair), or the guard off: whatever was solved
+    assert not guard_motion(forward(0.2), 0.1, None, 0.1, g)[1]
+    assert not guard_motion(forward(0.2), 0.1, last, 0.1, MotionGuard(max_accel=0.0))[1]
+
+
+def test_the_guard_reads_speeds_so_a_dropped_frame_is_no_jump():
+    g = MotionGuard(max_accel=30.0)
+    last = forward(1.0, 1.0)
+    # a frame dropped: twice the step in twice the time is the same speed
+    assert not guard_motion(forward(2.0, 2.0), 0.2, last, 0.1, g)[1]
+    # held over 0.2 s: the last motion at constant velocity, twice its translation and its angle
+    kept, held = guard_motion(forward(0.4), 0.2, last, 0.1, g)
+    assert held
+    assert np.allclose(kept[:3, 3], [0.0, 0.0, 2.0])
+    assert np.degrees(rotation_angle(kept[:3, :3])) == pytest.approx(2.0)
+    assert np.allclose(scaled_motion(last, 1.0), last)
+
+
+def test_interval_comes_from_stamps_else_the_period():
+    g = MotionGuard(period=0.05)
+    assert g.interval(1.0, 1.1) == pytest.approx(0.1)
+    assert g.interval(None, 1.1) == 0.05 and g.interval(1.1, 1.1) == 0.05
+
+
+def _fake_track(steps: list[float]):
+    """`direct.track` replaced by hand-made motions, one per pair in order: the guard is tested, not
+    the solve."""
+    queue = list(steps)
+
+    def track(prev, cur, start, cfg):
+        return forward(queue.pop(0))
+
+    return track
+
+
+def test_direct_tracker_keeps_the_previous_motion_where_the_solve_jumps(small_synth, monkeypatch):
+    seq = KittiSequence.open(small_synth)
+    # the first pair comes from the cold start's solves (not faked); the second solves 1.0 m, the
+    # third 0.1 m (9 m/s slower in 0.1 s), the fourth 1.05 m
+    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(0.9))
+    monkeypatch.setattr(direct, "track", _fake_track([1.0, 0.1, 1.05, 1.0]))
+    odo = DirectOdometry(seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    poses = np.stack([odo.step(seq.image(i), seq.scan(i), float(seq.times[i])) for i in range(5)])
+    steps = np.linalg.norm(relatives(poses)[:, :3, 3], axis=1)  # cam0 steps: the same length as image_2's
+    assert steps == pytest.approx([0.9, 1.0, 1.0, 1.05], abs=1e-9)
+    assert odo.guarded == 1
+    # off (the default), the solve as it came
+    monkeypatch.setattr(direct, "track", _fake_track([1.0, 0.1, 1.05, 1.0]))
+    odo = DirectOdometry(seq.calib)
+    poses = np.stack([odo.step(seq.image(i), seq.scan(i), float(seq.times[i])) for i in range(5)])
+    assert np.linalg.norm(relatives(poses)[:, :3, 3], axis=1) == pytest.approx([0.9, 1.0, 0.1, 1.05], abs=1e-9)
+    assert odo.guarded == 0
+
+
+def test_a_resumed_direct_run_guards_as_an_uninterrupted_one(small_synth, monkeypatch):
+    """Primed with two poses, the tracker compares the next pair with their motion, as it would
+    have had it run through."""
+    seq = KittiSequence.open(small_synth)
+    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(0.9))
+    monkeypatch.setattr(direct, "track", _fake_track([1.0, 0.1]))
+    whole = DirectOdometry(seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    poses = [whole.step(seq.image(i), seq.scan(i), float(seq.times[i])) for i in range(4)]
+    monkeypatch.setattr(direct, "track", _fake_track([0.1]))
+    resumed = DirectOdometry(seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    resumed.prime(seq.image(2), seq.scan(2), poses[2], poses[1], stamp=float(seq.times[2]),
+                  previous_stamp=float(seq.times[1]))
+    assert np.allclose(resumed.step(seq.image(3), seq.scan(3), float(seq.times[3])), poses[3])
+    assert resumed.guarded == 1
+
+
+def test_network_run_keeps_the_previous_motion_and_starts_the_next_pair_from_it(small_synth):
+    """The bundled model's pose outputs replaced by hand-made motions (in image_2, as the graph
+    gives them): the pair that jumps is replaced by the one before, and the next pair starts there
+    rather than at the graph's own start."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.odometry import Odometry
+
+    seq = KittiSequence.open(small_synth)
+    odo = Odometry(bundled_model_dir(), seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    solved = [forward(1.0), forward(0.1), forward(1.05)]
+    starts = []
+
+    def flow_pose(prev, cur, camera):
+        starts.append(camera["init_pose"][0].astype(np.float64))
+        A = solved[len(starts) - 1]
+        return {"matrix": A[None].astype(np.float32), "start_next": forward(0.5)[None].astype(np.float32)}
+
+    odo.model.flow_pose = flow_pose
+    poses = np.stack([odo.step(seq.image(i), seq.scan(i), float(seq.times[i])) for i in range(4)])
+    assert np.linalg.norm(relatives(poses)[:, :3, 3], axis=1) == pytest.approx([1.0, 1.0, 1.05], abs=1e-5)
+    assert odo.guarded == 1
+    # pairs 2 and 3 started from the graph's start, then from the motion the guard kept
+    assert np.allclose(starts[1][:3, 3], [0, 0, 0.5], atol=1e-6) and np.allclose(starts[2][:3, 3], [0, 0, 1.0], atol=1e-6)
+
+    # resumed after frame 1 (its pose and the one before, their stamps), the jump is caught alike
+    resumed = Odometry(bundled_model_dir(), seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    resumed.model.flow_pose = flow_pose
+    del starts[:]
+    solved[:] = [forward(0.1)]
+    resumed.prime(seq.image(1), seq.scan(1), poses[1], poses[0], stamp=float(seq.times[1]),
+                  previous_stamp=float(seq.times[0]))
+    assert np.allclose(resumed.step(seq.image(2), seq.scan(2), float(seq.times[2])), poses[2], atol=1e-5)
+    assert resumed.guarded == 1
+
+
+def test_cli_takes_the_limit_records_it_and_refuses_a_negative_one(small_synth, tmp_path):
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from d3lvo_deploy.results import read_config
+
+    r = CliRunner().invoke(app, ["run", str(small_synth), "--method", "direct", "--max-accel", "-1",
+                                 "--out", str(tmp_path / "a.txt")])
+    assert r.exit_code == 1 and "--max-accel must be 0 (off) or a positive number" in r.output
+    r = CliRunner().invoke(app, ["run", str(small_synth), "--method", "direct", "--max-accel", "30",
+                                 "--out-dir", str(tmp_path / "run")])
+    assert r.exit_code == 0, r.output
+    assert read_config(tmp_path / "run")["max_accel"] == 30.0
