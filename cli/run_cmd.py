@@ -329,7 +329,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     absolute = lambda p: None if p is None else Path(p).resolve()  # noqa: E731 - repeatable from anywhere
     record = dict(path=seq.root.resolve(), fmt=seq.format_name, calib=absolute(calib), image_topic=image_topic,
                   cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt, gt=absolute(gt), onnx=absolute(onnx),
-                  method=method, start=start, end=end, provider=provider)
+                  method=method, start=start, end=end, provider=provider, max_accel=float(max_accel))
     record_path = folder.path / CONFIG if folder is not None else record_file(out_path)
     if resume:
         _check_resume(record_path, out_path, record, model_dir if model_dir is not None else resolve_model_dir(onnx))
@@ -354,7 +354,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     record.update(threads=sc.engine_threads,  # the count used
                   backend=engine_name if method == "d3lvo" else backend, ov_precision=ov_precision,
                   optimization=optimization, realtime=realtime, viz_every=viz_every, pipeline=pipeline,
-                  classical_beside=classical_beside, max_accel=float(max_accel))
+                  classical_beside=classical_beside)
     if folder is not None:
         folder.create()
         if overwrite:  # an earlier run's outputs are not this run's, whether it finishes or not

@@ -147,7 +147,10 @@ def read_config(path: str | Path) -> dict:
 # the [run] options that decide which frame each pose belongs to and how it was estimated: a
 # resumed run appends to the poses of an earlier one only where it agrees on each (the end may
 # grow; threads and engine change no pose beyond rounding)
-RESUME_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "method", "start")
+RESUME_KEYS = ("path", "fmt", "calib", "image_topic", "cloud_topic", "info_topic", "max_dt", "method", "start",
+               "max_accel")
+# what a run record without the key ran with (a setting newer than the record)
+RESUME_DEFAULTS = {"max_accel": 0.0}
 
 
 def record_file(out: str | Path) -> Path:
@@ -164,7 +167,7 @@ def check_resume(record: Path, current: dict[str, dict], poses: Path) -> None:
     old = read_toml(record, "run record")
     if not isinstance(old.get("run"), dict) or not isinstance(old.get("model", {}), dict):
         raise D3LVOInputError(record, "has no [run] table, or a [model] that is no table (d3lvo run writes both)")
-    pairs = [(f"{k}", old["run"].get(k), current["run"].get(k)) for k in RESUME_KEYS]
+    pairs = [(f"{k}", old["run"].get(k, RESUME_DEFAULTS.get(k)), current["run"].get(k)) for k in RESUME_KEYS]
     pairs.append(("model", old.get("model", {}).get("manifest_sha256"), current["model"].get("manifest_sha256")))
     for key, was, now in pairs:
         was, now = (None if v is None else str(v) if isinstance(v, Path) else v for v in (was, now))

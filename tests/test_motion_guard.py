@@ -148,3 +148,27 @@ def test_cli_takes_the_limit_records_it_and_refuses_a_negative_one(small_synth, 
                                  "--out-dir", str(tmp_path / "run")])
     assert r.exit_code == 0, r.output
     assert read_config(tmp_path / "run")["max_accel"] == 30.0
+
+
+def test_resume_continues_only_a_run_with_the_same_guard(small_synth, tmp_path):
+    """The guard changes the poses, so --resume refuses to continue a run made with another limit; a
+    record written without the setting is a run without the guard."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    out = tmp_path / "d.txt"
+    run = lambda *extra: CliRunner().invoke(app, ["run", str(small_synth), "--method", "direct", "--out", str(out),  # noqa: E731
+                                                  *extra])
+    assert run("--max-accel", "30").exit_code == 0
+    lines = out.read_text().splitlines(keepends=True)
+    out.write_text("".join(lines[:3]))  # an interrupted run
+    r = run("--resume")
+    assert r.exit_code == 1 and "max_accel = 30.0, this one has 0.0" in r.output
+    assert run("--resume", "--max-accel", "30").exit_code == 0
+    # the classical tracker's resumed start comes from the poses as written (docs/runtime.md)
+    assert np.allclose(np.loadtxt(out), np.loadtxt(lines), atol=1e-6)
+    record = out.with_name(out.name + ".config.toml")
+    record.write_text("".join(l for l in record.read_text().splitlines(keepends=True) if not l.startswith("max_accel")))
+    out.write_text("".join(lines[:3]))
+    assert run("--resume").exit_code == 0  # no max_accel recorded: a run without the guard
