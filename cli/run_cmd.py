@@ -150,7 +150,8 @@ def run_command(
     max_accel: float = typer.Option(0.0, "--max-accel", help="The motion guard (either method): a solved motion whose "
                                     "speed differs from the last one's by more than this many m/s^2 times the time "
                                     "between the frames keeps the last motion instead (a car brakes at up to ~10 "
-                                    "m/s^2; 30 was chosen on validation drives); 0, the default, turns it off."),
+                                    "m/s^2; 30 was chosen on validation drives, and raises the error on some drives: "
+                                    "docs/evaluation.md); 0, the default, turns it off."),
 ) -> None:
     """Estimate the trajectory of a recording with the ONNX stages (no torch needed).
 

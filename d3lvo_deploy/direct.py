@@ -393,6 +393,7 @@ class DirectOdometry:
         self._prev = self._frame(image, points)
         self._prev_stamp = None if stamp is None else float(stamp)
         self.pose = pose
+        self.cold = True  # without the pose before, the next pair starts from the cold start's guesses
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = change_frame(self.relative, self.calib.T_cam2_cam0)

@@ -2,7 +2,7 @@
 
 Where vehicles fill the view, a direct solve that starts at the right motion can slide to the
 minimum of a vehicle moving with the camera and report a step a fraction of the last one (0.97 m,
-then 0.16 m, 0.1 s later: a deceleration of 80 m/s^2). The next pair then starts from that step.
+then 0.16 m, 0.1 s later: a deceleration of 81 m/s^2). The next pair then starts from that step.
 Where the camera's speed changes by more than `max_accel` times the time between the frames, the
 guard keeps the previous motion instead (constant velocity): the step is physically impossible,
 whatever fitted the images best. Off by default (`d3lvo run --max-accel A` turns it on, for either

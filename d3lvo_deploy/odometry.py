@@ -449,6 +449,7 @@ class Odometry:
         self._prev = self.encode(image, points, stamp)
         self._prev_stamp = self._prev["stamp"]
         self.pose = pose
+        self.kept2, self.cold = None, True  # no motion to start from or guard against unless the pose before is given
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)

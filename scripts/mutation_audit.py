@@ -264,7 +264,7 @@ MUTATIONS = [
              "keep = keep | (fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1])",
              ("tests/test_point_solver.py::test_frame_ts_scan_judges_between_the_weighted_and_the_classical_pose",)),
     Mutation("--resume continues poses of another start frame", "d3lvo_deploy/results.py",
-             '"max_dt", "method", "start")', '"max_dt", "method")',
+             '"max_dt", "method", "start",\n', '"max_dt", "method",\n',
              ("tests/test_formats.py::test_resume_continues_only_the_run_its_config_records",)),
     Mutation("eval pairs TUM poses by their order, not their times", "d3lvo_deploy/evaluation.py",
              "    if est.timestamps is None or gt.timestamps is None or len(gt) < 2:\n",
@@ -284,6 +284,13 @@ MUTATIONS = [
              "            if not held and start is not None and np.all(np.isfinite(start)):",
              "            if start is not None and np.all(np.isfinite(start)):",
              ("tests/test_motion_guard.py::test_network_run_keeps_the_previous_motion_and_starts_the_next_pair_from_it",)),
+    Mutation("--resume continues a run made with another --max-accel", "d3lvo_deploy/results.py",
+             '               "max_accel")', "               )",
+             ("tests/test_motion_guard.py::test_resume_continues_only_a_run_with_the_same_guard",)),
+    Mutation("a run steps its frames without their times", "d3lvo_deploy/pipeline.py",
+             "pose = odo.step(image, points, float(seq.times[i]))", "pose = odo.step(image, points)",
+             ("tests/test_motion_guard.py::test_run_reads_the_recordings_times",
+              "tests/test_motion_guard.py::test_network_run_reads_the_recordings_times")),
 ]
 
 

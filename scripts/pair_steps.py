@@ -50,11 +50,14 @@ def main(drive: str, first: int, last: int) -> None:
         err = lambda A: float(np.linalg.norm(relative(true, A)[:3, 3]))  # noqa: E731
         step = lambda A: float(np.linalg.norm(A[:3, 3]))  # noqa: E731
         kept, weighted = out["matrix"][0].astype(np.float64), out["start_next"][0].astype(np.float64)
-        classical, start = cam["classical_pose"][0].astype(np.float64), cam["init_pose"][0].astype(np.float64)
+        start = cam["init_pose"][0].astype(np.float64)
+        # the classical pose is an input where the model solves it beside (two threads), else inside the graph
+        classical = cam["classical_pose"][0].astype(np.float64) if "classical_pose" in cam else None
         w = out["point_weights"][0]
         print(f"pair {i}: true {step(true):.3f}  kept {step(kept):.3f} (off {err(kept):.3f})  weighted "
-              f"{step(weighted):.3f} (off {err(weighted):.3f})  classical {step(classical):.3f} (off "
-              f"{err(classical):.3f})  start off {err(start):.3f}  distrusted {np.mean(w[w > 0] < 0.5):.2f}")
+              f"{step(weighted):.3f} (off {err(weighted):.3f})  classical "
+              + (f"{step(classical):.3f} (off {err(classical):.3f})" if classical is not None else "(in the graph)")
+              + f"  start off {err(start):.3f}  distrusted {np.mean(w[w > 0] < 0.5):.2f}")
 
 
 if __name__ == "__main__":

@@ -581,3 +581,10 @@ for d in "$OUT"/data/traffic_3?? "$OUT"/data/own_91? "$OUT"/data/static_2?? "$OU
   "$D3LVO" run "$d" --method direct --max-accel 30 --out "$OUT/eval/guard_direct_$(basename "$d").txt" --overwrite
 done
 .venv/bin/python scripts/pair_steps.py "$OUT/data/traffic_323" 62 82
+# three other ways of guarding the classical mode, on the validation drives, and the ground truth's
+# largest change of step (docs/evaluation.md, "The motion guard")
+V=("$OUT"/data/val_traffic_2 "$OUT"/data/val_traffic_3 "$OUT"/data/val_traffic_4)
+.venv/bin/python scripts/guard_variants.py clamp 20 "${V[@]}"
+for k in 3 5 10; do .venv/bin/python scripts/guard_variants.py "release:$k" 30 "$OUT/data/val_traffic_2"; done
+.venv/bin/python scripts/guard_variants.py scan 30 "${V[@]}" "$OUT"/data/val_traffic_612 "$OUT"/data/val_traffic_613
+.venv/bin/python scripts/guard_variants.py truth "$OUT"/data/*

@@ -172,3 +172,77 @@ def test_resume_continues_only_a_run_with_the_same_guard(small_synth, tmp_path):
     record.write_text("".join(l for l in record.read_text().splitlines(keepends=True) if not l.startswith("max_accel")))
     out.write_text("".join(lines[:3]))
     assert run("--resume").exit_code == 0  # no max_accel recorded: a run without the guard
+
+
+# frame times of the uneven clip: frame 2 comes 0.2 s after frame 1 (a frame dropped)
+UNEVEN = [0.0, 0.1, 0.3, 0.4, 0.5, 0.6]
+# the solve of the pair ending at each time (m forward), and what the guard at 30 m/s^2 keeps: 1.2 m
+# in 0.2 s is 6 m/s, 4 m/s slower than 10 m/s, within 30 x 0.2 (kept); 0.1 m in 0.1 s after it is 5
+# m/s slower, beyond 30 x 0.1 (the previous motion at constant velocity over 0.1 s: 0.6 m)
+SOLVED = {0.1: 1.0, 0.3: 1.2, 0.4: 0.1, 0.5: 0.62, 0.6: 0.6}
+KEPT = [1.0, 1.2, 0.6, 0.62, 0.6]
+
+
+@pytest.fixture
+def uneven_clip(small_synth, tmp_path):
+    import shutil
+
+    clip = tmp_path / "uneven"
+    shutil.copytree(small_synth, clip)
+    (clip / "times.txt").write_text("".join(f"{t:.6e}\n" for t in UNEVEN))
+    (clip / "poses.txt").unlink()  # the rendered motion is not this clip's: no scoring
+    return clip
+
+
+def _steps(path) -> np.ndarray:
+    from d3lvo_deploy.poses import read_poses
+
+    return np.linalg.norm(relatives(read_poses(path).poses)[:, :3, 3], axis=1)
+
+
+def test_run_reads_the_recordings_times(uneven_clip, tmp_path, monkeypatch):
+    """`d3lvo run --method direct` passes each frame's time: the dropped frame's longer step is no
+    jump, the later one is, and the next pair starts from the motion kept."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    starts = []
+
+    def track(prev, cur, start, cfg):
+        starts.append(float(np.linalg.norm(start[:3, 3])))
+        return forward(list(SOLVED.values())[len(starts)])
+
+    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(SOLVED[0.1]))
+    monkeypatch.setattr(direct, "track", track)
+    r = CliRunner().invoke(app, ["run", str(uneven_clip), "--method", "direct", "--max-accel", "30",
+                                 "--out", str(tmp_path / "d.txt")])
+    assert r.exit_code == 0, r.output
+    assert _steps(tmp_path / "d.txt") == pytest.approx(KEPT, abs=1e-9)
+    assert starts == pytest.approx([1.0, 1.2, 0.6, 0.62], abs=1e-9)
+    assert "motion guard: the previous motion kept on 1 of 5 pairs" in r.output
+
+
+@pytest.mark.parametrize("how", [[], ["--pipeline"], ["resume"]])
+def test_network_run_reads_the_recordings_times(how, uneven_clip, tmp_path, monkeypatch):
+    """The same through the network's run, one frame at a time, pipelined (onnxruntime: the next frame
+    prepared and encoded on the reader thread) and resumed after three poses."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from d3lvo_deploy.onnx_model import StageModel
+
+    def flow_pose(self, prev, cur, camera):
+        A = forward(SOLVED[round(cur["stamp"], 6)])[None].astype(np.float32)
+        return {"matrix": A, "start_next": A}
+
+    monkeypatch.setattr(StageModel, "flow_pose", flow_pose)
+    out = tmp_path / "n.txt"
+    args = ["run", str(uneven_clip), "--backend", "onnxruntime", "--max-accel", "30", "--out", str(out)]
+    r = CliRunner().invoke(app, args + [a for a in how if a != "resume"])
+    assert r.exit_code == 0, r.output
+    if how == ["resume"]:
+        out.write_text("".join(out.read_text().splitlines(keepends=True)[:3]))
+        r = CliRunner().invoke(app, args + ["--resume"])
+        assert r.exit_code == 0, r.output
+    assert _steps(out) == pytest.approx(KEPT, abs=1e-5)
