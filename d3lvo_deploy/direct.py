@@ -393,7 +393,8 @@ class DirectOdometry:
         self._prev = self._frame(image, points)
         self._prev_stamp = None if stamp is None else float(stamp)
         self.pose = pose
-        self.cold = True  # without the pose before, the next pair starts from the cold start's guesses
+        # without the pose before, no motion: the next pair starts from the cold start's guesses
+        self.cold, self.motion2, self.relative = True, np.eye(4), np.eye(4)
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = change_frame(self.relative, self.calib.T_cam2_cam0)

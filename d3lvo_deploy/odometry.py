@@ -449,7 +449,8 @@ class Odometry:
         self._prev = self.encode(image, points, stamp)
         self._prev_stamp = self._prev["stamp"]
         self.pose = pose
-        self.kept2, self.cold = None, True  # no motion to start from or guard against unless the pose before is given
+        # no motion to start from or guard against unless the pose before (or the saved start) is given
+        self.kept2, self.cold, self.motion2, self.relative = None, True, np.eye(4), np.eye(4)
         if previous_pose is not None:
             self.relative = relative(previous_pose, self.pose)
             self.motion2 = self._motion_between(previous_pose, self.pose)

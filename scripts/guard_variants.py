@@ -33,8 +33,8 @@ from d3lvo_deploy.sequence import KittiSequence
 
 def truth(drive: Path) -> None:
     seq = KittiSequence.open(drive)
-    if seq.ground_truth is None:
-        raise D3LVOInputError(drive, "has no poses.txt")
+    if seq.ground_truth is None or len(seq) < 3:
+        raise D3LVOInputError(drive, "has no poses.txt, or fewer than 3 frames")
     steps = np.linalg.norm(relatives(seq.ground_truth.poses)[:, :3, 3], axis=1)
     k = int(np.argmax(np.abs(np.diff(steps))))
     dt = float(np.median(np.diff(seq.times)))
@@ -44,6 +44,8 @@ def truth(drive: Path) -> None:
 
 def run(variant: str, a: float, drive: Path) -> None:
     seq = KittiSequence.open(drive)
+    if seq.ground_truth is None:
+        raise D3LVOInputError(drive, "has no poses.txt")
     odo = DirectOdometry(seq.calib, DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]),
                          MotionGuard(max_accel=a))
     state = {"row": 0, "judge": None}
@@ -86,16 +88,20 @@ def run(variant: str, a: float, drive: Path) -> None:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    variant = args[0] if args else ""
     try:
-        if args[:1] == ["truth"] and len(args) > 1:
+        limit = float(args[1]) if len(args) >= 3 else -1.0
+        int(variant.split(":")[1]) if variant.startswith("release:") else 0
+    except ValueError:
+        sys.exit(__doc__)
+    try:
+        if variant == "truth" and len(args) > 1:
             for d in args[1:]:
                 truth(Path(d))
-        elif len(args) >= 3 and (args[0] in ("hold", "clamp", "scan") or args[0].startswith("release:")):
+        elif limit >= 0 and (variant in ("hold", "clamp", "scan") or variant.startswith("release:")):
             for d in args[2:]:
-                run(args[0], float(args[1]), Path(d))
+                run(variant, limit, Path(d))
         else:
             sys.exit(__doc__)
     except D3LVOInputError as e:
         sys.exit(f"error: {e}")
-    except ValueError:
-        sys.exit(__doc__)

@@ -200,33 +200,48 @@ def _steps(path) -> np.ndarray:
     return np.linalg.norm(relatives(read_poses(path).poses)[:, :3, 3], axis=1)
 
 
+def _solves(monkeypatch, first_pair: int) -> list[float]:
+    """`direct.track` answering the clip's pairs from `first_pair` on (1: the first after the cold
+    start) with SOLVED; returns the list the starts it was given go to."""
+    starts: list[float] = []
+
+    def track(prev, cur, start, cfg):
+        starts.append(float(np.linalg.norm(start[:3, 3])))
+        return forward(list(SOLVED.values())[first_pair + len(starts) - 1])
+
+    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(SOLVED[0.1]))
+    monkeypatch.setattr(direct, "track", track)
+    return starts
+
+
 def test_run_reads_the_recordings_times(uneven_clip, tmp_path, monkeypatch):
     """`d3lvo run --method direct` passes each frame's time: the dropped frame's longer step is no
-    jump, the later one is, and the next pair starts from the motion kept."""
+    jump, the later one is, and the next pair starts from the motion kept; resumed after two poses
+    (the dropped frame's pair the first to solve) it writes the same."""
     from typer.testing import CliRunner
 
     from cli.main import app
 
-    starts = []
-
-    def track(prev, cur, start, cfg):
-        starts.append(float(np.linalg.norm(start[:3, 3])))
-        return forward(list(SOLVED.values())[len(starts)])
-
-    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(SOLVED[0.1]))
-    monkeypatch.setattr(direct, "track", track)
-    r = CliRunner().invoke(app, ["run", str(uneven_clip), "--method", "direct", "--max-accel", "30",
-                                 "--out", str(tmp_path / "d.txt")])
+    out = tmp_path / "d.txt"
+    args = ["run", str(uneven_clip), "--method", "direct", "--max-accel", "30", "--out", str(out)]
+    starts = _solves(monkeypatch, 1)
+    r = CliRunner().invoke(app, args)
     assert r.exit_code == 0, r.output
-    assert _steps(tmp_path / "d.txt") == pytest.approx(KEPT, abs=1e-9)
+    assert _steps(out) == pytest.approx(KEPT, abs=1e-9)
     assert starts == pytest.approx([1.0, 1.2, 0.6, 0.62], abs=1e-9)
     assert "motion guard: the previous motion kept on 1 of 5 pairs" in r.output
+    out.write_text("".join(out.read_text().splitlines(keepends=True)[:2]))
+    _solves(monkeypatch, 1)
+    r = CliRunner().invoke(app, args + ["--resume"])
+    assert r.exit_code == 0, r.output
+    assert _steps(out) == pytest.approx(KEPT, abs=1e-6)
 
 
-@pytest.mark.parametrize("how", [[], ["--pipeline"], ["resume"]])
+@pytest.mark.parametrize("how", [[], ["--pipeline"], ["resume", 3], ["resume", 2]])
 def test_network_run_reads_the_recordings_times(how, uneven_clip, tmp_path, monkeypatch):
     """The same through the network's run, one frame at a time, pipelined (onnxruntime: the next frame
-    prepared and encoded on the reader thread) and resumed after three poses."""
+    prepared and encoded on the reader thread), and resumed after three poses (the jump the first
+    pair to solve) or two (the dropped frame's pair first: its time from both primed frames')."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -239,10 +254,33 @@ def test_network_run_reads_the_recordings_times(how, uneven_clip, tmp_path, monk
     monkeypatch.setattr(StageModel, "flow_pose", flow_pose)
     out = tmp_path / "n.txt"
     args = ["run", str(uneven_clip), "--backend", "onnxruntime", "--max-accel", "30", "--out", str(out)]
-    r = CliRunner().invoke(app, args + [a for a in how if a != "resume"])
+    r = CliRunner().invoke(app, args + [a for a in how if a == "--pipeline"])
     assert r.exit_code == 0, r.output
-    if how == ["resume"]:
-        out.write_text("".join(out.read_text().splitlines(keepends=True)[:3]))
+    if "resume" in how:
+        out.write_text("".join(out.read_text().splitlines(keepends=True)[:how[1]]))
         r = CliRunner().invoke(app, args + ["--resume"])
         assert r.exit_code == 0, r.output
     assert _steps(out) == pytest.approx(KEPT, abs=1e-5)
+
+
+def test_prime_without_the_pose_before_forgets_the_motion(small_synth, monkeypatch):
+    """A tracker primed with one pose has no motion to start from or to guard against, whatever it
+    tracked before: its next pair starts cold (the cold start's solve), as a fresh run's first."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.odometry import Odometry
+
+    seq = KittiSequence.open(small_synth)
+    monkeypatch.setattr(direct, "first_motion", lambda prev, cur, cfg: forward(0.9))
+    monkeypatch.setattr(direct, "track", lambda prev, cur, start, cfg: forward(0.2))
+    classical = DirectOdometry(seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    network = Odometry(bundled_model_dir(), seq.calib, guard=MotionGuard(CHOSEN_MAX_ACCEL))
+    network.model.flow_pose = lambda prev, cur, camera: {"matrix": forward(1.0)[None].astype(np.float32)}
+    for odo in (classical, network):
+        odo.prime(seq.image(1), seq.scan(1), forward(1.0), np.eye(4))  # a motion of 1 m
+        assert not odo.cold
+        odo.prime(seq.image(2), seq.scan(2), forward(2.0))
+        assert odo.cold and np.allclose(odo.motion2, np.eye(4))
+    assert network.kept2 is None
+    # the classical tracker's next pair: the cold start's 0.9 m, not a 0.2 m solve held at 1 m
+    after = classical.step(seq.image(3), seq.scan(3), float(seq.times[3]))
+    assert np.linalg.norm(after[:3, 3] - forward(2.0)[:3, 3]) == pytest.approx(0.9, abs=1e-9)
