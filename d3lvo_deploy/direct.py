@@ -31,7 +31,7 @@ from .blas import one_blas_thread
 from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
-from .motion_guard import MotionGuard, guard_motion
+from .motion_guard import MotionGuard, guard_motion, scaled_motion
 from .odometry import (FrameTiming, as_calib, calib_source, check_first_frame, check_frame_size, check_image,
                        clean_scan, rigid_pose)
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
@@ -363,7 +363,8 @@ class DirectOdometry:
             if self.cold:
                 A = first_motion(self._prev, cur, self.cfg)
             else:
-                A = track(self._prev, cur, self.motion2, self.cfg)  # constant velocity
+                # constant velocity over this pair's time: a dropped frame's pair starts twice as far
+                A = track(self._prev, cur, scaled_motion(self.motion2, dt / self.motion_dt), self.cfg)
                 A, held = guard_motion(A, dt, self.motion2, self.motion_dt, self.guard)
                 self.guarded += held
             self.motion2, self.motion_dt, self.cold = A, dt, False

@@ -23,7 +23,7 @@ from .cold_start import ColdStartConfig
 from .errors import D3LVOInputError
 from .frames import FramePreprocessor
 from .geometry import change_frame, is_rigid, relative
-from .motion_guard import MotionGuard, guard_motion
+from .motion_guard import MotionGuard, guard_motion, scaled_motion
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                      finest_level, point_config, solver_feeds, textured_points)
@@ -340,7 +340,7 @@ class Odometry:
         and encoder, which use every core. Where the model solves its classical mode beside
         (`StageModel.beside`), that solve starts first, on the helper thread, and runs while
         completion and encoder do."""
-        beside = self._start_classical(frame.solver)
+        beside = self._start_classical(frame.solver, frame.stamp)
         enc = self.encode_prepared(frame)
         if on_encoded is not None:
             on_encoded()
@@ -351,7 +351,7 @@ class Odometry:
         self.last_timing = FrameTiming(dict(times))
         return self._pose_step(enc)
 
-    def _start_classical(self, solver: SolverFrame | None) -> Future | None:
+    def _start_classical(self, solver: SolverFrame | None, stamp: float | None = None) -> Future | None:
         """Where the model solves the classical mode beside: the pair's inputs (the first pair's
         start from the cold start's solves too) and its classical solve (the `classical` stage),
         started on the helper thread, as a future of (inputs with `CLASSICAL_INPUT`, ms); None
@@ -361,7 +361,7 @@ class Odometry:
 
         def solve() -> tuple[dict[str, np.ndarray], float]:
             t0 = time.perf_counter()
-            inputs = self._pair_inputs(solver)
+            inputs = self._pair_inputs(solver, stamp)
             inputs[CLASSICAL_INPUT] = self.model.solve_classical(inputs)
             return inputs, (time.perf_counter() - t0) * 1000
 
@@ -414,24 +414,28 @@ class Odometry:
         if not self.model.geometric:
             return self.model.flow_pose(self._prev, enc, None)
         if beside is None:  # with the classical mode solved beside, `flow_pose` solves it first
-            inputs = self._pair_inputs(enc.get("solver_frame"))
+            inputs = self._pair_inputs(enc.get("solver_frame"), enc.get("stamp"))
         else:
             inputs, self.last_timing.beside[BESIDE_STAGE] = beside.result()
         return self.model.flow_pose(self._prev, enc, inputs)
 
-    def _pair_inputs(self, solver: SolverFrame | None) -> dict[str, np.ndarray]:
+    def _pair_inputs(self, solver: SolverFrame | None, stamp: float | None = None) -> dict[str, np.ndarray]:
         """The pair's camera and solver inputs (frame t's solver frame `solver`), from `motion2`;
         the first pair of a point-solver graph, which has no previous motion, from the classical
         tracker's solve from `cold_start`'s guesses (`direct.first_motion`). Where the graph
-        `chains_classical`, the classical solve's start too, from the previous classical pose."""
-        feeds, start = {}, self.motion2
+        `chains_classical`, the classical solve's start too, from the previous classical pose. Constant
+        velocity over the pair's own time (`stamp` against the previous frame's): the last motion
+        scaled by the ratio of the two pairs' times, so that a dropped frame's pair starts twice as
+        far (frames `MotionGuard.period` apart where a stamp is missing)."""
+        gap = self.guard.interval(self._prev_stamp, stamp) / self.kept_dt
+        feeds, start = {}, scaled_motion(self.motion2, gap)
         if self.model.point_solver:
             prev = self._prev["solver_frame"]
             feeds = solver_feeds(prev, solver, self.calib.K2, self.points.capacity)
             if self.cold and len(prev.points):
                 start = cold_start_motion(prev, solver, self.calib.K2, self.model.config, self.cold_start)
             if self.chains_classical:
-                classical = start if self.cold else self._classical_start
+                classical = start if self.cold else scaled_motion(self._classical_start, gap)
                 feeds[CLASSICAL_START_INPUT] = np.asarray(classical, np.float32).reshape(1, 4, 4)
         return {**camera_inputs(self.pre.K, start), **feeds}
 

@@ -298,6 +298,14 @@ MUTATIONS = [
              "previous_stamp=float(seq.times[k - 1]) if len(done) >= 2 else None)", "previous_stamp=None)",
              ("tests/test_motion_guard.py::test_run_reads_the_recordings_times",
               "tests/test_motion_guard.py::test_network_run_reads_the_recordings_times")),
+    Mutation("the classical tracker starts a pair across a dropped frame from the last pair's motion",
+             "d3lvo_deploy/direct.py",
+             "track(self._prev, cur, scaled_motion(self.motion2, dt / self.motion_dt), self.cfg)",
+             "track(self._prev, cur, self.motion2, self.cfg)",
+             ("tests/test_motion_guard.py::test_run_reads_the_recordings_times",)),
+    Mutation("the network starts a pair across a dropped frame from the last pair's motion", "d3lvo_deploy/odometry.py",
+             "        gap = self.guard.interval(self._prev_stamp, stamp) / self.kept_dt\n", "        gap = 1.0\n",
+             ("tests/test_motion_guard.py::test_network_run_reads_the_recordings_times",)),
 ]
 
 

@@ -588,3 +588,13 @@ V=("$OUT"/data/val_traffic_2 "$OUT"/data/val_traffic_3 "$OUT"/data/val_traffic_4
 for k in 3 5 10; do .venv/bin/python scripts/guard_variants.py "release:$k" 30 "$OUT/data/val_traffic_2"; done
 .venv/bin/python scripts/guard_variants.py scan 30 "${V[@]}" "$OUT"/data/val_traffic_612 "$OUT"/data/val_traffic_613
 .venv/bin/python scripts/guard_variants.py truth "$OUT"/data/*
+# dropped frames: four held-out drives with one frame in ten left out, with their own times and with
+# times 0.1 s apart (docs/evaluation.md, "Dropped frames")
+for s in heldout_09 heldout_10 traffic_312 traffic_313; do
+  for v in own uniform; do
+    d="$OUT/data/dropped_${s}_$v"
+    [ -d "$d" ] || .venv/bin/python scripts/drop_frames.py "$OUT/data/$s" "$d" $([ $v = uniform ] && echo --uniform-times)
+    "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/dropped_net_${s}_$v.txt" --overwrite
+    "$D3LVO" run "$d" --method direct --out "$OUT/eval/dropped_direct_${s}_$v.txt" --overwrite
+  done
+done

@@ -228,7 +228,9 @@ def test_run_reads_the_recordings_times(uneven_clip, tmp_path, monkeypatch):
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 0, r.output
     assert _steps(out) == pytest.approx(KEPT, abs=1e-9)
-    assert starts == pytest.approx([1.0, 1.2, 0.6, 0.62], abs=1e-9)
+    # constant velocity over each pair's own time: 1 m in 0.1 s is 2 m over the dropped frame's
+    # 0.2 s, 1.2 m in 0.2 s is 0.6 m over 0.1 s
+    assert starts == pytest.approx([2.0, 0.6, 0.6, 0.62], abs=1e-9)
     assert "motion guard: the previous motion kept on 1 of 5 pairs" in r.output
     out.write_text("".join(out.read_text().splitlines(keepends=True)[:2]))
     _solves(monkeypatch, 1)
@@ -247,7 +249,10 @@ def test_network_run_reads_the_recordings_times(how, uneven_clip, tmp_path, monk
     from cli.main import app
     from d3lvo_deploy.onnx_model import StageModel
 
+    starts = {}
+
     def flow_pose(self, prev, cur, camera):
+        starts[round(cur["stamp"], 6)] = float(np.linalg.norm(camera["init_pose"][0, :3, 3]))
         A = forward(SOLVED[round(cur["stamp"], 6)])[None].astype(np.float32)
         return {"matrix": A, "start_next": A}
 
@@ -261,6 +266,9 @@ def test_network_run_reads_the_recordings_times(how, uneven_clip, tmp_path, monk
         r = CliRunner().invoke(app, args + ["--resume"])
         assert r.exit_code == 0, r.output
     assert _steps(out) == pytest.approx(KEPT, abs=1e-5)
+    # each pair after the first started at constant velocity over its own time, as the classical
+    # tracker's (the resumed run's from the saved start, over the primed frames' times)
+    assert [starts[t] for t in (0.3, 0.4, 0.5, 0.6)] == pytest.approx([2.0, 0.6, 0.6, 0.62], abs=1e-5)
 
 
 def test_prime_without_the_pose_before_forgets_the_motion(small_synth, monkeypatch):
