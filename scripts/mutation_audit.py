@@ -239,7 +239,7 @@ MUTATIONS = [
              "            out[n] = out[n]\n",
              ("tests/test_backends.py::test_two_cores_solve_the_classical_mode_beside_completion_and_encoder",)),
     Mutation("the classical solve waits until completion and encoder are done", "d3lvo_deploy/odometry.py",
-             "        beside = self._start_classical(frame.solver)\n",
+             "        beside = self._start_classical(frame.solver, frame.stamp)\n",
              "        beside = None\n",
              ("tests/test_point_solver.py::test_runtime_solves_the_classical_mode_beside_and_writes_the_batched_poses",)),
     Mutation("the flow+pose graph is given the pair's start as its classical pose", "d3lvo_deploy/odometry.py",
