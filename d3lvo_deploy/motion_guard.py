@@ -44,9 +44,10 @@ class MotionGuard:
 
 def scaled_motion(A: np.ndarray, factor: float) -> np.ndarray:
     """The rigid motion A (4x4) at constant velocity over `factor` times its time: rotation angle
-    and translation scaled; A itself within float rounding of a factor of 1 (stamps 0.1 s apart
-    written in decimal)."""
-    if abs(factor - 1.0) < 1e-9:
+    and translation scaled; A itself within a thousandth of a factor of 1, where the two times
+    differ by their rounding only (seconds since 1970 as a float resolve 0.2 us: a ROS stamp's
+    ratio to the last is 1 +- 5e-6 at 10 Hz), so that a recording's format does not move its poses."""
+    if abs(factor - 1.0) < 1e-3:
         return np.array(A, dtype=np.float64)
     out = np.eye(4)
     out[:3, :3] = axis_angle_to_rot(rot_to_axis_angle(A[:3, :3]) * factor)
