@@ -230,10 +230,9 @@ class Odometry:
         self.cold = True  # no previous motion yet
         self.frames = 0
         # the motion guard's state: the last kept image_2 motion (None until a pair has one), its
-        # time, the last frame's stamp, and how many pairs the guard replaced
+        # time, and how many pairs the guard replaced
         self.kept2: np.ndarray | None = None
         self.kept_dt = self.guard.period
-        self._prev_stamp: float | None = None
         self.guarded = 0
 
     def _preprocessor(self, image: np.ndarray) -> FramePreprocessor:
@@ -395,9 +394,13 @@ class Odometry:
             self.cold = False
         self.last_timing.ms["flowpose"] = (time.perf_counter() - t0) * 1000
         self._prev = enc
-        self._prev_stamp = enc.get("stamp")
         self.frames += 1
         return self.pose.copy()
+
+    @property
+    def _prev_stamp(self) -> float | None:
+        """Frame t-1's time in seconds, where it was given."""
+        return None if self._prev is None else self._prev.get("stamp")
 
     def _guarded(self, A2: np.ndarray, stamp: float | None) -> tuple[np.ndarray, bool]:
         """The pair's image_2 motion A2 through the motion guard (`motion_guard`): the previous kept
@@ -451,7 +454,6 @@ class Odometry:
         if start is not None:  # one 4x4, or `start_state`'s (K,4,4)
             start = np.stack([rigid_pose(S, "prime's start") for S in (start if np.ndim(start) == 3 else [start])])
         self._prev = self.encode(image, points, stamp)
-        self._prev_stamp = self._prev["stamp"]
         self.pose = pose
         # no motion to start from or guard against unless the pose before (or the saved start) is given
         self.kept2, self.cold, self.motion2, self.relative = None, True, np.eye(4), np.eye(4)

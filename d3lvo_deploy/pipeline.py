@@ -404,11 +404,11 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                 summary.latencies_ms.setdefault("read", []).append(read_ms)
                 summary.latencies_ms["total"].append(odo.last_timing.total + read_ms)
                 summary.wall_s = time.perf_counter() - t_wall0
-                summary.guarded = getattr(odo, "guarded", 0)
                 if progress is not None:
                     progress(j + 1, n, odo.last_timing.total + read_ms)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
+    summary.guarded = getattr(odo, "guarded", 0)
     return summary
 
