@@ -11,6 +11,8 @@ fixed threshold that suits one exposure and one amount of noise. With `fine_rest
 level is also solved alone from the start, and that motion is kept where it explains the points
 better (`consensus_gain`), or with `restart_depth` where it fits frame t's own LiDAR scan better
 (`lidar_depth_error`): a quarter-size level can hold a wrong minimum the finest cannot leave.
+With `scan_gate`, frame t's scan first drops the points of frame t-1 that are no longer where the
+starting motion puts them: what moves, before the solve can follow it.
 With a `motion_guard` (off by default), a step whose speed no car reaches from the last one's is
 replaced by the last.
 
@@ -73,6 +75,12 @@ class DirectConfig:
     # forward step, the photometric costs can prefer a motion half a metre short, and the scan
     # sees the step (the network's `pt_restart_depth`, docs/evaluation.md)
     restart_depth: float = 0.0
+    # above 0: before a pair is solved, frame t-1's points that frame t's own LiDAR scan puts more
+    # than this (relative depth) away from where the starting motion moves them are dropped
+    # (`scan_gated`): at 10 Hz the start is near the truth for what stands still, and what moves
+    # has left its place; it reads no image, so a vehicle the solve would follow is already gone
+    # (the network's `pt_scan_gate`, docs/evaluation.md)
+    scan_gate: float = 0.0
     # the first pair, which has no previous motion, from several guesses (`cold_start`)
     cold_start: ColdStartConfig = field(default_factory=ColdStartConfig)
 
@@ -85,6 +93,11 @@ class DirectConfig:
     def checks_restart_on_scan(self) -> bool:
         """The restart is also judged by frame t's LiDAR depth, which each frame then keeps."""
         return self.restarts and self.restart_depth > 0
+
+    @property
+    def reads_scan(self) -> bool:
+        """Each frame keeps its own LiDAR depth: for the restart's check or the scan gate."""
+        return self.checks_restart_on_scan or self.scan_gate > 0
 
     @classmethod
     def of_model(cls, model_config: dict) -> "DirectConfig":
@@ -99,7 +112,8 @@ class DirectConfig:
                    refine=model_config.get("pt_refine", 0), points=point_config(model_config),
                    affine_brightness=bool(model_config.get("pt_affine", False)),
                    fine_restart=float(model_config.get("pt_fine_restart", 0.0)),
-                   restart_depth=float(model_config.get("pt_restart_depth", 0.0)))
+                   restart_depth=float(model_config.get("pt_restart_depth", 0.0)),
+                   scan_gate=float(model_config.get("pt_scan_gate", 0.0)))
 
 
 @dataclass
@@ -221,6 +235,8 @@ class TrackedFrame:
 def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectConfig) -> np.ndarray:
     """The image_2 motion A (frame t in t-1) that aligns frame t-1's points with frame t, coarse to
     fine from `start`."""
+    if cfg.scan_gate > 0 and cur.depth is not None:
+        prev = scan_gated(prev, cur.depth, start, cfg.scan_gate)
     M, X = se3_inv(start), prev.points
     for lvl in reversed(range(cfg.levels)):
         prev_lvl = prev.levels[lvl]
@@ -252,22 +268,39 @@ def keeps_restart(prev: TrackedFrame, cur: TrackedFrame, restart: np.ndarray, A:
             < cfg.restart_depth * lidar_depth_error(prev.points, A, cur.depth, K))
 
 
-def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
-    """The median |d - z| / z of frame t-1's points (N, 3) moved by the image_2 motion A (frame t in
-    t-1) against frame t's own LiDAR depth `depth` (H, W metres, 0 where none) at their nearest
-    pixel, where it has a return and z is above 0.5 m; inf where none does (no evidence). A check
-    of the motion that does not read the images and that sees the forward step (the network's
-    `models.point_solver.lidar_depth_error` with every point trusted)."""
+def depth_errors(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Per point of frame t-1 (N, 3) moved by the image_2 motion A (frame t in t-1), |d - z| / z
+    against frame t's own LiDAR depth `depth` (H, W metres, 0 where none) at its nearest pixel;
+    NaN where that pixel has no return, or z is 0.5 m or less (no evidence)."""
     M = se3_inv(A)
     X = points @ M[:3, :3].T + M[:3, 3]
-    X = X[X[:, 2] > 0.5]
-    u, v = np.rint(project(X, K)[0]).T
-    inside = (u >= 0) & (u <= depth.shape[1] - 1) & (v >= 0) & (v <= depth.shape[0] - 1)
-    d, z = depth[v[inside].astype(int), u[inside].astype(int)], X[inside, 2]
+    errors = np.full(len(points), np.nan)
+    front = X[:, 2] > 0.5
+    u, v = np.rint(project(np.where(front[:, None], X, 1.0), K)[0]).T
+    at = np.flatnonzero(front & (u >= 0) & (u <= depth.shape[1] - 1) & (v >= 0) & (v <= depth.shape[0] - 1))
+    d = depth[v[at].astype(int), u[at].astype(int)]
     seen = d > 0
-    if not seen.any():
-        return float("inf")
-    return float(np.median(np.abs(d[seen] - z[seen]) / z[seen]))
+    z = X[at[seen], 2]
+    errors[at[seen]] = np.abs(d[seen] - z) / z
+    return errors
+
+
+def lidar_depth_error(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> float:
+    """The median `depth_errors` of frame t-1's points (N, 3) under the image_2 motion A; inf
+    where none has evidence. A check of the motion that does not read the images and that sees
+    the forward step (the network's `models.point_solver.lidar_depth_error` with every point
+    trusted)."""
+    errors = depth_errors(points, A, depth, K)
+    seen = errors[~np.isnan(errors)]
+    return float(np.median(seen)) if len(seen) else float("inf")
+
+
+def scan_gated(prev: TrackedFrame, depth: np.ndarray, start: np.ndarray, limit: float) -> TrackedFrame:
+    """Frame t-1 without the points whose `depth_errors` under the starting motion exceed `limit`:
+    frame t's scan sees something else where they should be (they moved, or a mover now hides
+    them). A point without evidence stays."""
+    moved = np.nan_to_num(depth_errors(prev.points, start, depth, prev.levels[0].K), nan=0.0) > limit
+    return TrackedFrame(prev.levels, prev.points[~moved], prev.depth) if moved.any() else prev
 
 
 def consensus_gain(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray, B: np.ndarray, cap: float = 2.0) -> float:
@@ -348,7 +381,7 @@ class DirectOdometry:
         scan = rows_in_view(scan, P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
-        depth = sparse_depth(scan, P, w, h) if self.cfg.checks_restart_on_scan else None
+        depth = sparse_depth(scan, P, w, h) if self.cfg.reads_scan else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)
 

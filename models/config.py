@@ -15,7 +15,7 @@ MAX_PYRAMID_LEVELS = 5
 # --set`) or trained on (`d3lvo train --set`, also on --resume) with other values
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
-               "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_select", "pt_select_rotation", "pt_select_unexplained",
+               "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_scan_gate", "pt_select", "pt_select_rotation", "pt_select_unexplained",
                "pt_select_scan", "pt_select_scan_pass", "pt_select_share", "pt_classical_chain")
 
 
@@ -132,6 +132,11 @@ class D3LVOConfig:
     # photometric costs can miss (docs/evaluation.md). Training solves without it: its samples
     # carry no scan, and the check picks between two poses without a gradient
     pt_restart_depth: float = 0.0
+    # above 0: the flow+pose graph also takes frame t's LiDAR depth (`scan_depth2`), and before
+    # each solve (both) the points of frame t-1 that it puts more than this (relative depth) from
+    # where the starting motion moves them get weight 0 (`point_solver.scan_kept`): what moved, before the
+    # solve can follow it (docs/evaluation.md). Training solves without it, as for pt_restart_depth
+    pt_scan_gate: float = 0.0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
     # a point's weight is its confidence to this power: 1 keeps the trained probability; higher
@@ -273,6 +278,8 @@ class D3LVOConfig:
             raise ValueError(f"pt_fine_restart must be in [0, 1) (0: off), not {self.pt_fine_restart!r}")
         if not (isinstance(self.pt_restart_depth, (int, float)) and 0 <= self.pt_restart_depth <= 1):
             raise ValueError(f"pt_restart_depth must be in [0, 1] (0: off), not {self.pt_restart_depth!r}")
+        if not (isinstance(self.pt_scan_gate, (int, float)) and 0 <= self.pt_scan_gate <= 1):
+            raise ValueError(f"pt_scan_gate must be in [0, 1] (0: off), not {self.pt_scan_gate!r}")
         if not (isinstance(self.pt_refine, int) and self.pt_refine >= 0):
             raise ValueError(f"pt_refine must be a whole number of steps, 0 or more, not {self.pt_refine!r}")
         if not (isinstance(self.pt_capacity, int) and self.pt_capacity >= 12):
@@ -333,9 +340,9 @@ class D3LVOConfig:
     @property
     def reads_scan(self) -> bool:
         """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`): for the restart's check,
-        or to judge between the weighted and the classical pose."""
-        return self.checks_restart_on_scan or (self.point_solver and self.pt_select > 0 and
-                                               (self.pt_select_scan > 0 or self.pt_select_scan_pass > 0))
+        to gate the points before the solve, or to judge between the weighted and the classical pose."""
+        return self.checks_restart_on_scan or (self.point_solver and self.pt_scan_gate > 0) or (
+            self.point_solver and self.pt_select > 0 and (self.pt_select_scan > 0 or self.pt_select_scan_pass > 0))
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

@@ -4,7 +4,8 @@ Frame t-1's textured LiDAR returns (`d3lvo_deploy.points.textured_points`, a fix
 a mask) are moved by the running motion, projected into frame t's grey image and its pyrDown
 levels, and the photometric residual is minimised coarse to fine (with `fine_restart`, the finest
 level also alone from the start, the better-explaining pose kept; with `restart_depth`, also where
-it fits frame t's own LiDAR scan better). Each level re-estimates a Huber
+it fits frame t's own LiDAR scan better; with `scan_gate`, that scan first drops the points that
+are no longer where the start puts them). Each level re-estimates a Huber
 threshold from the residuals' median (1.345 x 1.4826 x MAD, every `scale_every` steps), takes up to `iterations[l]`
 damped steps and stops when a step is below `stop_step` (a flag that zeroes the later steps; the
 steps run in blocks of `scale_every`, and at a block boundary after the stop PyTorch breaks and
@@ -68,6 +69,10 @@ class SolverSettings:
     restart_depth: float = 0.0
     # the Huber threshold's median over every this-th point only (`huber_threshold`)
     median_stride: int = 1
+    # above 0 (with frame t's own LiDAR depth, `scan_depth2`): before solving, drop the points
+    # whose `depth_errors` under the start exceed this (`scan_kept`): what moved, before the
+    # solve can follow it (`d3lvo_deploy.direct.scan_gated`)
+    scan_gate: float = 0.0
 
 
 def pyr_down(x: torch.Tensor) -> torch.Tensor:
@@ -346,15 +351,12 @@ def _finest_with_restart(R, t, points, ref, stack, K, weight, median_mask, mask,
     return torch.where(better[:, None, None], restart, coarse_to_fine)
 
 
-@full_precision
-def lidar_depth_error(A: torch.Tensor, points: torch.Tensor, trusted: torch.Tensor, depth2: torch.Tensor,
-                      K: torch.Tensor) -> torch.Tensor:
-    """(B,): the median |d - z| / z of frame t-1's trusted points (B,N) moved by A (B,4,4, frame
-    t in frame t-1) against frame t's own LiDAR depth d (G,1,H,W metres, 0 where no return; B = k
-    G, rows i k .. i k + k - 1 on image i) at their nearest pixel, where it has a return and z
-    above 0.5 m; 1e9 where no point lands on one (no evidence). A check of the motion that does
-    not read the images, and that sees the forward step; the numpy tracker's
-    `d3lvo_deploy.direct.lidar_depth_error` with every point trusted."""
+def depth_errors(A: torch.Tensor, points: torch.Tensor, depth2: torch.Tensor,
+                 K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,N) |d - z| / z of frame t-1's points (B,N,3) moved by A (B,4,4, frame t in frame t-1)
+    against frame t's own LiDAR depth d (G,1,H,W metres, 0 where no return; B = k G, rows i k ..
+    i k + k - 1 on image i) at their nearest pixel, and (B,N) 1 where there is evidence: the pixel
+    is in view with a return, z above 0.5 m (`d3lvo_deploy.direct.depth_errors`, NaN where none)."""
     M = gn.invert(A)
     X = points @ M[:, :3, :3].transpose(1, 2) + M[:, :3, 3].unsqueeze(1)
     uv = project(X, K)[0]
@@ -365,8 +367,26 @@ def lidar_depth_error(A: torch.Tensor, points: torch.Tensor, trusted: torch.Tens
     g = depth2.shape[0]
     d = torch.gather(depth2.flatten(1), 1, index.reshape(g, -1)).reshape(index.shape)
     z = X[..., 2]
-    ok = trusted * (inside & (d > 0) & (z > 0.5)).to(points.dtype)
-    return masked_median((d - z).abs() / z.clamp(min=0.5), ok)[:, 0]
+    return (d - z).abs() / z.clamp(min=0.5), (inside & (d > 0) & (z > 0.5)).to(points.dtype)
+
+
+@full_precision
+def lidar_depth_error(A: torch.Tensor, points: torch.Tensor, trusted: torch.Tensor, depth2: torch.Tensor,
+                      K: torch.Tensor) -> torch.Tensor:
+    """(B,): the median `depth_errors` of frame t-1's trusted points (B,N) under A; 1e9 where no
+    point has evidence. A check of the motion that does not read the images, and that sees the
+    forward step; the numpy tracker's `d3lvo_deploy.direct.lidar_depth_error` with every point
+    trusted."""
+    errors, seen = depth_errors(A, points, depth2, K)
+    return masked_median(errors, trusted * seen)[:, 0]
+
+
+def scan_kept(init: torch.Tensor, points: torch.Tensor, depth2: torch.Tensor, K: torch.Tensor,
+              limit: float) -> torch.Tensor:
+    """(B,N) 0 where frame t's scan puts a point more than `limit` (`depth_errors`) from where the
+    start `init` moves it, else 1 (no evidence keeps it): `SolverSettings.scan_gate`."""
+    errors, seen = depth_errors(init, points, depth2, K)
+    return 1.0 - seen * (errors > limit).to(points.dtype)
 
 
 @full_precision
@@ -442,9 +462,13 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     confidence; K (B,4) of the images; init (B,4,4) the starting relative pose A (frame t in
     frame t-1). The Huber scale is taken over the points with median_mask (default weight > 0.5).
     mask (B,N), the point list's (default weight > 0): what `s.refine` restores explained points to.
-    depth2 (G,1,H,W): frame t's LiDAR depth at the camera's resolution, for `s.restart_depth`.
+    depth2 (G,1,H,W): frame t's LiDAR depth at the camera's resolution, for `s.restart_depth` and
+    `s.scan_gate`.
     Returns the relative pose A after each level, coarse to fine (the finest after the refinement):
     list of (B,4,4)."""
+    if s.scan_gate > 0 and depth2 is not None:
+        kept = scan_kept(init, points, depth2, K, s.scan_gate)
+        weight, mask = weight * kept, None if mask is None else mask * kept
     default_median = median_mask is None
     median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
     M = gn.invert(init)

@@ -37,7 +37,8 @@ from .point_solver import (NO_EVIDENCE, SolverSettings, consensus_gain, image_py
 def solver_settings(cfg: D3LVOConfig) -> SolverSettings:
     """The point solver's settings in a model config."""
     return SolverSettings(tuple(cfg.pt_iters), cfg.pt_stop, cfg.pt_damping, cfg.pt_scale_every, cfg.pt_refine,
-                          cfg.pt_affine, cfg.pt_fine_restart, cfg.pt_restart_depth, cfg.pt_median_stride)
+                          cfg.pt_affine, cfg.pt_fine_restart, cfg.pt_restart_depth, cfg.pt_median_stride,
+                          cfg.pt_scan_gate)
 
 
 class MovingLogits(nn.Module):
@@ -175,7 +176,7 @@ class PointPose(nn.Module):
         """Tensors at the finest flow level; K (B,4) of the network view; init (B,4,4) the start.
         `solver`: both frames' image pyramids (`pyramid_input_names`; the exported graph's inputs)
         or image1, image2 (B,1,H,W) grey at the camera's resolution (training), points1 (B,N,3),
-        point_mask1 (B,N), image_intrinsics (B,4), with `pt_restart_depth` scan_depth2 (B,1,H,W) frame
+        point_mask1 (B,N), image_intrinsics (B,4), with `pt_restart_depth` or `pt_scan_gate` scan_depth2 (B,1,H,W) frame
         t's LiDAR depth at the camera's resolution; without it only the logits."""
         logits = self.moving_logits(hidden, flow, feat1, feat2, invdepth1, invdepth2, K, init)
         confidence = torch.sigmoid(-logits)

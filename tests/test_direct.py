@@ -179,3 +179,44 @@ def test_real_frames_end_near_lidar_odometry():
           f"path {length(est):.2f} m, {end_off:.2f} m off; no motion {np.linalg.norm(ref[-1, :3, 3]):.2f} m off")
     assert length(ref) > 3.0  # the reference itself moved
     assert end_off < 0.4 and abs(length(est) / length(ref) - 1) < 0.1
+
+
+def _gate_case():
+    """Frame t-1's points and frame t's LiDAR depth, the camera 1 m forward: a static point (the
+    scan sees it at 9 m), a car that kept its distance (10 m where 9 m is expected: error 1/9), a
+    point with no return at its pixel, and one hidden by something at 5 m (error 4/9)."""
+    from d3lvo_deploy.direct import TrackedFrame
+
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
+    points = np.array([[0.0, 0.0, 10.0], [1.0, 0.0, 10.0], [0.0, 1.0, 20.0], [0.0, -1.0, 10.0]])
+    depth = np.zeros((100, 100))
+    depth[50, 50], depth[50, 61], depth[39, 50] = 9.0, 10.0, 5.0  # pixels (50, 50), (61.1, 50), (50, 38.9)
+    forward = make_se3(np.eye(3), [0.0, 0.0, 1.0])
+    return TrackedFrame.of(np.zeros((100, 100), np.float32), points, K, 1), depth, forward
+
+
+def test_scan_gate_drops_what_moved():
+    """The errors are the hand-computed ones; the gate drops the points above its limit and keeps a
+    point without a return; at rest the static point's own error is 1/10."""
+    from d3lvo_deploy.direct import depth_errors, scan_gated
+
+    prev, depth, forward = _gate_case()
+    K = prev.levels[0].K
+    e = depth_errors(prev.points, forward, depth, K)
+    assert np.isnan(e[2]) and e[[0, 1, 3]] == pytest.approx([0.0, 1 / 9, 4 / 9])
+    assert scan_gated(prev, depth, forward, 0.05).points.tolist() == prev.points[[0, 2]].tolist()
+    assert scan_gated(prev, depth, forward, 0.2).points.tolist() == prev.points[[0, 1, 2]].tolist()
+    assert scan_gated(prev, depth, forward, 0.5) is prev
+    assert depth_errors(prev.points[:1], np.eye(4), depth, K)[0] == pytest.approx(0.1)  # 9 m seen, 10 m expected
+
+
+def test_scan_gate_comes_from_the_model():
+    """`--method direct` stands for a model's classical mode: its `pt_scan_gate` is the tracker's
+    gate, and a frame then keeps its LiDAR depth (also without the restart's check)."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.manifest import load_manifest
+
+    model = dict(load_manifest(bundled_model_dir())["model_config"], pt_scan_gate=0.05, pt_restart_depth=0.0)
+    cfg = DirectConfig.of_model(model)
+    assert cfg.scan_gate == 0.05 and cfg.reads_scan and not cfg.checks_restart_on_scan
+    assert not DirectConfig().reads_scan

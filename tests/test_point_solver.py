@@ -1423,3 +1423,29 @@ def test_the_exported_loop_is_the_steps_and_ends_when_the_level_stops(tmp_path, 
     np.testing.assert_allclose(R_onnx, R.numpy(), atol=1e-5)
     np.testing.assert_allclose(t_onnx, t.numpy(), atol=1e-5)
     assert samples == 3 * ran
+
+
+def test_scan_gate_is_the_numpy_trackers():
+    """The graph's gate keeps the points the numpy tracker keeps on the hand-built case
+    (`test_direct._gate_case`); on the real pair 11-12 with the bundled settings and the gate at
+    0.05, the solve with every confidence 1 gives the numpy tracker's motion within 1e-6 m, and the
+    gate moves that motion by more than that (it drops points there)."""
+    from d3lvo_deploy.direct import scan_gated
+    from models.point_solver import scan_kept
+    from test_direct import _gate_case
+
+    prev, depth, forward = _gate_case()
+    kept = scan_kept(_t(forward)[None], _t(prev.points)[None], _t(depth)[None, None], _k(prev.levels[0].K), 0.05)
+    assert kept[0].tolist() == [1.0, 0.0, 1.0, 0.0]
+    assert len(scan_gated(prev, depth, forward, 0.05).points) == 2
+    cfg = DirectConfig(affine_brightness=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05)
+    seq, init, prev, cur = _pair_11_12(cfg)
+    want = track(prev, cur, init, cfg)
+    ungated = track(prev, cur, init, replace(cfg, scan_gate=0.0))
+    assert np.linalg.norm(want[:3, 3] - ungated[:3, 3]) > 1e-5
+    pts, mask = pad_points(prev.points, cfg.points.capacity)
+    images = [_t(grey_image(seq.image(i)))[None, None] for i in (11, 12)]
+    got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
+                SolverSettings(cfg.iterations, affine=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05),
+                depth2=_t(cur.depth)[None, None])[-1][0].numpy()
+    assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
