@@ -306,6 +306,21 @@ MUTATIONS = [
     Mutation("the network starts a pair across a dropped frame from the last pair's motion", "d3lvo_deploy/odometry.py",
              "        gap = self.guard.interval(self._prev_stamp, stamp) / self.kept_dt\n", "        gap = 1.0\n",
              ("tests/test_motion_guard.py::test_network_run_reads_the_recordings_times",)),
+    Mutation("the classical tracker's scan gate drops the points that stayed where the start puts them",
+             "d3lvo_deploy/direct.py",
+             "nan=0.0) > limit", "nan=0.0) <= limit",
+             ("tests/test_direct.py::test_scan_gate_drops_what_moved",)),
+    Mutation("the classical tracker's scan gate drops the points without a return", "d3lvo_deploy/direct.py",
+             "depth_errors(prev.points, start, depth, prev.levels[0].K), nan=0.0)",
+             "depth_errors(prev.points, start, depth, prev.levels[0].K), nan=1.0)",
+             ("tests/test_direct.py::test_scan_gate_drops_what_moved",)),
+    Mutation("the graph's scan gate judges the points at rest instead of at the start", "models/point_solver.py",
+             "    errors, seen = depth_errors(init, points, depth2, K)",
+             "    errors, seen = depth_errors(init * 0 + torch.eye(4, dtype=init.dtype), points, depth2, K)",
+             ("tests/test_point_solver.py::test_scan_gate_is_the_numpy_trackers",)),
+    Mutation("the model's scan gate is not the classical mode's", "d3lvo_deploy/direct.py",
+             'scan_gate=float(model_config.get("pt_scan_gate", 0.0))', 'scan_gate=0.0',
+             ("tests/test_direct.py::test_scan_gate_comes_from_the_model",)),
 ]
 
 

@@ -598,3 +598,26 @@ for s in heldout_09 heldout_10 traffic_312 traffic_313; do
     "$D3LVO" run "$d" --method direct --out "$OUT/eval/dropped_direct_${s}_$v.txt" --overwrite
   done
 done
+# frame t's scan as a gate before the solve (pt_scan_gate; docs/evaluation.md, "Frame t's scan as a
+# gate before the solve"): other robust weights and the gate on the classical mode, on the
+# validation drives (each variant also on the static ones alone, for their mean); the network
+# without and with the gate on them; then 0.05 set in default.pt and exported into the bundled
+# folder, and every held-out drive and the demo's scored with both methods
+for v in huber tukey cauchy t scangate:0.05 scangate:0.1 gate:0.03 gate:0.05 gate:0.1; do
+  .venv/bin/python scripts/robust_weights.py "$v" "$OUT"/data/val_traffic* "$OUT"/data/val_static*
+  .venv/bin/python scripts/robust_weights.py "$v" "$OUT"/data/val_static*
+done
+for g in 0 0.05; do
+  "$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/scan_gate_$g" --overwrite --set pt_scan_gate=$g
+  for d in "$OUT"/data/val_traffic* "$OUT"/data/val_static*; do
+    "$D3LVO" run "$d" --onnx "$OUT/scan_gate_$g" --backend onnxruntime --threads 1 \
+      --out "$OUT/eval/scan_gate_${g}_$(basename "$d").txt" --overwrite
+  done
+done
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  'd3lvo_deploy/default_model/default.pt', dict(pt_scan_gate=0.05))"
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model --overwrite
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/own_91? "$OUT"/data/demo_909; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/gated_net_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --method direct --out "$OUT/eval/gated_direct_$(basename "$d").txt" --overwrite
+done
