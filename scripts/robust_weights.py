@@ -2,8 +2,8 @@
 
     .venv/bin/python scripts/robust_weights.py VARIANT DRIVE...
 
-Runs `d3lvo run DRIVE --method direct` (the bundled model's classical mode) with its Huber weight
-replaced, everywhere the tracker uses it (the Gauss-Newton steps and the exposure match), and
+Runs `d3lvo run DRIVE --method direct` (the bundled model's classical mode, without its scan gate
+but for `gate:T`) with its Huber weight replaced, everywhere the tracker uses it (the Gauss-Newton steps and the exposure match), and
 prints each drive's t_rel (ATE where the drive is too short for it), then the mean t_rel. The scale
 sigma is the tracker's own (1.4826 x the median |r|, re-estimated every third step). VARIANT:
 
@@ -32,12 +32,10 @@ import numpy as np
 
 from d3lvo_deploy import direct
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, depth_errors
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.evaluation import evaluate
-from d3lvo_deploy.geometry import se3_inv
 from d3lvo_deploy.manifest import load_manifest
-from d3lvo_deploy.points import project
 from d3lvo_deploy.sequence import KittiSequence
 
 TUKEY_C, CAUCHY_C, T_DOF = 4.685, 2.385, 5.0  # 95 % efficiency on Gaussian residuals; Kerl et al.'s nu
@@ -67,28 +65,13 @@ def student_t(r: np.ndarray, k: float) -> np.ndarray:
 WEIGHTS = {"tukey": tukey, "cauchy": cauchy, "t": student_t}
 
 
-def depth_errors(points: np.ndarray, A: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Per point of frame t-1, |d - z| / z against frame t's LiDAR depth at its nearest pixel under
-    the image_2 motion A (as `direct.lidar_depth_error`, point by point); NaN where no return."""
-    M = se3_inv(A)
-    X = points @ M[:3, :3].T + M[:3, 3]
-    e = np.full(len(points), np.nan)
-    front = X[:, 2] > 0.5
-    u, v = np.rint(project(np.where(front[:, None], X, 1.0), K)[0]).T
-    idx = np.flatnonzero(front & (u >= 0) & (u <= depth.shape[1] - 1) & (v >= 0) & (v <= depth.shape[0] - 1))
-    d = depth[v[idx].astype(int), u[idx].astype(int)]
-    seen = d > 0
-    e[idx[seen]] = np.abs(d[seen] - X[idx[seen], 2]) / X[idx[seen], 2]
-    return e
-
-
 def run(variant: str, drive: Path) -> float | None:
     seq = KittiSequence.open(drive)
     if seq.ground_truth is None:
         raise D3LVOInputError(drive, "has no poses.txt")
-    cfg = DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"])
-    if variant.startswith("gate:"):
-        cfg = replace(cfg, scan_gate=float(variant.split(":")[1]))
+    # the bundled model's classical mode without its scan gate, which only `gate:T` sets
+    cfg = replace(DirectConfig.of_model(load_manifest(bundled_model_dir())["model_config"]),
+                  scan_gate=float(variant.split(":")[1]) if variant.startswith("gate:") else 0.0)
     odo = DirectOdometry(seq.calib, cfg)
     shipped_weights, shipped_track, dropped = direct.huber_weights, direct.track, []
     if variant in WEIGHTS:
