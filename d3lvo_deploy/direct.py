@@ -178,8 +178,9 @@ def affine_fit(ref: np.ndarray, cur: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, iterations: int,
-                cfg: DirectConfig) -> np.ndarray:
-    """Gauss-Newton on M (frame t-1 points -> frame t) at one level; left updates exp(xi) M."""
+                cfg: DirectConfig, index: np.ndarray | None = None) -> np.ndarray:
+    """Gauss-Newton on M (frame t-1 points -> frame t) at one level; left updates exp(xi) M.
+    index: each point's place in the point list (`TrackedFrame.index`), for the median's stride."""
     h, w = lvl.shape
     fx, fy = lvl.K[0, 0], lvl.K[1, 1]
     for i in range(iterations):
@@ -197,7 +198,7 @@ def align_level(M: np.ndarray, X: np.ndarray, ref: np.ndarray, lvl: Level, itera
         cur = s[:, 0]
         r = cur - (affine_fit(ref[ok], cur, np.ones_like(cur)) if cfg.affine_brightness else ref[ok])
         if i % cfg.scale_every == 0:
-            k = stride_threshold(r, np.flatnonzero(ok), cfg.median_stride)
+            k = stride_threshold(r, np.flatnonzero(ok) if index is None else index[ok], cfg.median_stride)
         if cfg.affine_brightness:
             r = cur - affine_fit(ref[ok], cur, huber_weights(r, k))
         # d residual / d point = grad . d pixel / d point; rotation part = X' x a (left perturbation)
@@ -223,8 +224,11 @@ class TrackedFrame:
     levels: list[Level]
     points: np.ndarray  # (N, 3) textured LiDAR returns in image_2 camera coordinates
     # (H, W) metres of the frame's own LiDAR returns at the camera's resolution, 0 where none
-    # (`DirectConfig.restart_depth`); None where not needed
+    # (`DirectConfig.restart_depth`, `DirectConfig.scan_gate`); None where not needed
     depth: np.ndarray | None = None
+    # each point's place in the frame's point list where `scan_gated` dropped some (the Huber
+    # median's stride counts places in that list, as the network's graph does); None: 0 .. N-1
+    index: np.ndarray | None = None
 
     @classmethod
     def of(cls, grey: np.ndarray, points: np.ndarray, K: np.ndarray, levels: int,
@@ -241,14 +245,15 @@ def track(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, cfg: DirectC
     for lvl in reversed(range(cfg.levels)):
         prev_lvl = prev.levels[lvl]
         ref = sample(prev_lvl.stack[..., :1], project(X, prev_lvl.K)[0])[:, 0]
-        M = align_level(M, X, ref, cur.levels[lvl], cfg.iterations[cfg.levels - 1 - lvl], cfg)
+        M = align_level(M, X, ref, cur.levels[lvl], cfg.iterations[cfg.levels - 1 - lvl], cfg, prev.index)
 
     def refined(M: np.ndarray) -> np.ndarray:
-        return align_level(M, X, ref, cur.levels[0], cfg.refine, cfg) if cfg.refine else M
+        return align_level(M, X, ref, cur.levels[0], cfg.refine, cfg, prev.index) if cfg.refine else M
 
     A = se3_inv(refined(M))
     if cfg.restarts:
-        restart = se3_inv(refined(align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg)))
+        restart = se3_inv(refined(align_level(se3_inv(start), X, ref, cur.levels[0], cfg.iterations[-1], cfg,
+                                              prev.index)))
         if keeps_restart(prev, cur, restart, A, cfg):
             A = restart
     return A
@@ -300,7 +305,10 @@ def scan_gated(prev: TrackedFrame, depth: np.ndarray, start: np.ndarray, limit: 
     frame t's scan sees something else where they should be (they moved, or a mover now hides
     them). A point without evidence stays."""
     moved = np.nan_to_num(depth_errors(prev.points, start, depth, prev.levels[0].K), nan=0.0) > limit
-    return TrackedFrame(prev.levels, prev.points[~moved], prev.depth) if moved.any() else prev
+    if not moved.any():
+        return prev
+    index = np.arange(len(prev.points)) if prev.index is None else prev.index
+    return TrackedFrame(prev.levels, prev.points[~moved], prev.depth, index[~moved])
 
 
 def consensus_gain(prev: TrackedFrame, cur: TrackedFrame, A: np.ndarray, B: np.ndarray, cap: float = 2.0) -> float:

@@ -16,7 +16,8 @@ import numpy as np
 from .projection import rows_in_depth, sparse_depth
 
 # the flow+pose graph's input for frame t's LiDAR depth, where it checks the finest level's restart
-# against the scan (`pt_restart_depth`)
+# against the scan (`pt_restart_depth`), gates the points by it (`pt_scan_gate`) or judges the two
+# poses by it (`pt_select_scan_pass`)
 SCAN_DEPTH_INPUT = "scan_depth2"
 # the classical mode's pose of the pair (frame t in frame t-1, (1,4,4)): the `classical` stage's
 # output and, where a model folder has that stage, an input of its `flowpose_weighted` graph
@@ -173,8 +174,8 @@ class SolverFrame:
     grey: np.ndarray  # (H, W) float32 in [0, 1], the camera's full resolution
     points: np.ndarray  # (M, 3) image_2 camera coordinates
     pyramid: list[np.ndarray] | None = None  # `solver_pyramid(grey, levels)`
-    # (H, W) metres of the frame's own LiDAR returns, 0 where none: for a graph that checks the
-    # finest level's restart against frame t's scan (`pt_restart_depth`)
+    # (H, W) metres of the frame's own LiDAR returns, 0 where none: for a graph that reads frame t's
+    # scan (`SCAN_DEPTH_INPUT`)
     depth: np.ndarray | None = None
 
     @classmethod

@@ -469,6 +469,7 @@ def solve(grey1: list, stack2: list, points: torch.Tensor, weight: torch.Tensor,
     if s.scan_gate > 0 and depth2 is not None:
         kept = scan_kept(init, points, depth2, K, s.scan_gate)
         weight, mask = weight * kept, None if mask is None else mask * kept
+        median_mask = None if median_mask is None else median_mask * kept
     default_median = median_mask is None
     median_mask = (weight > 0.5).to(points.dtype) if default_median else median_mask
     M = gn.invert(init)

@@ -188,8 +188,8 @@ MUTATIONS = [
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",
               "tests/test_point_solver.py::test_export_set_reaches_the_graph")),
     Mutation("the classical tracker picks the median's points by their place among those in view", "d3lvo_deploy/direct.py",
-             "            k = stride_threshold(r, np.flatnonzero(ok), cfg.median_stride)",
-             "            k = stride_threshold(r, np.arange(len(r)), cfg.median_stride)",
+             "            k = stride_threshold(r, np.flatnonzero(ok) if index is None else index[ok], cfg.median_stride)",
+             "            k = stride_threshold(r, np.arange(len(r)) if index is None else index[ok], cfg.median_stride)",
              ("tests/test_point_solver.py::test_confidence_one_is_the_numpy_tracker",)),
     Mutation("frames prepared with numpy's BLAS threads left free", "d3lvo_deploy/odometry.py",
              "        with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)\n"
@@ -321,6 +321,11 @@ MUTATIONS = [
     Mutation("the model's scan gate is not the classical mode's", "d3lvo_deploy/direct.py",
              'scan_gate=float(model_config.get("pt_scan_gate", 0.0))', 'scan_gate=0.0',
              ("tests/test_direct.py::test_scan_gate_comes_from_the_model",)),
+    Mutation("the classical tracker counts the median's stride in the list the scan gate thinned",
+             "d3lvo_deploy/direct.py",
+             "np.flatnonzero(ok) if index is None else index[ok], cfg.median_stride)",
+             "np.flatnonzero(ok), cfg.median_stride)",
+             ("tests/test_point_solver.py::test_scan_gate_is_the_numpy_trackers",)),
 ]
 
 

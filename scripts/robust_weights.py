@@ -7,7 +7,7 @@ but for `gate:T`) with its Huber weight replaced, everywhere the tracker uses it
 prints each drive's t_rel (ATE where the drive is too short for it), then the mean t_rel. The scale
 sigma is the tracker's own (1.4826 x the median |r|, re-estimated every third step). VARIANT:
 
-- `huber`: the tracker as it ships (threshold 1.345 sigma), the row the others are read against;
+- `huber`: the tracker's own weight (threshold 1.345 sigma), the row the others are read against;
 - `tukey`: Tukey's biweight (1 - (r/c)^2)^2, 0 beyond c = 4.685 sigma: a point far off counts nothing;
 - `cauchy`: 1 / (1 + (r/c)^2), c = 2.385 sigma;
 - `t`: Student-t with 5 degrees of freedom, its scale iterated to a fixed point on the residuals
@@ -19,7 +19,7 @@ sigma is the tracker's own (1.4826 x the median |r|, re-estimated every third st
 - `gate:TAU`: the same gate under the starting motion instead, before the one solve
   (`DirectConfig.scan_gate`, the model setting `pt_scan_gate`).
 
-docs/evaluation.md ("The robust weight") quotes it.
+docs/evaluation.md ("Frame t's scan as a gate before the solve") quotes it.
 """
 
 from __future__ import annotations

@@ -55,10 +55,10 @@ def main(drive: str, i: int, affine: bool, static_only: bool) -> None:
         A = track(a, b, start, cfg)
         print(f"from {name:16s} -> step {np.linalg.norm(A[:3, 3]):.3f} m, {np.linalg.norm((np.linalg.inv(truth) @ A)[:3, 3]):.3f} m "
               f"off, cost {motion_cost(a, b, A):.4f}")
-    # frame i+1's own LiDAR depth, as the tracker keeps it for the restart's check (pt_restart_depth)
+    # frame i+1's own LiDAR depth, as the tracker keeps it (pt_restart_depth, pt_scan_gate)
     depth, K = b.depth, seq.calib.K2
     if depth is None:
-        sys.exit("the bundled model's classical mode keeps no scan depth (its pt_restart_depth is 0)")
+        sys.exit("the bundled model's classical mode keeps no scan depth (its pt_restart_depth and pt_scan_gate are 0)")
     print(f"LiDAR depth error (median |d - z| / z against frame {i + 1}'s scan) at the true motion "
           f"{lidar_depth_error(a.points, truth, depth, K):.4f}")
     # where the pyramid loses it: from the true motion without the restart, on the finest levels

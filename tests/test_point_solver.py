@@ -889,8 +889,10 @@ def test_the_preparing_thread_ends_with_its_odometry():
 
 def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     """`scan_depth2` is a flow+pose input where the finest level's restart runs (on more than one
-    level) and the check is on; a config that checks with the restart off (what `--set
-    pt_fine_restart=0` makes of the bundled model) is valid and takes no scan."""
+    level) and the check is on, or where the scan gate is on; a config that checks with the
+    restart off (what `--set pt_fine_restart=0` makes of the bundled model) is valid and takes no
+    scan. The classical stage reads it for the restart's check or the gate, not for the judge
+    between the two poses."""
     from types import SimpleNamespace
 
     from export.stages import solver_input_names
@@ -903,6 +905,16 @@ def test_the_scan_is_an_input_only_where_a_restart_checks_it():
     assert not takes_scan(pt_fine_restart=0.0, pt_restart_depth=0.5)
     assert not takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.0)
     assert not takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.5, pt_iters=(15,))
+    assert takes_scan(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_scan_gate=0.05)  # the gate alone reads it
+    from export.stages import classical_input_names
+
+    def classical_takes_scan(**kw) -> bool:
+        model = SimpleNamespace(cfg=D3LVOConfig.small(pose_head="points", pt_select=0.005, **kw))
+        return "scan_depth2" in classical_input_names(model)
+
+    assert classical_takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.5)
+    assert classical_takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.0, pt_scan_gate=0.05)
+    assert not classical_takes_scan(pt_fine_restart=0.001, pt_restart_depth=0.0, pt_select_scan_pass=0.7)
     assert DirectConfig.of_model(D3LVOConfig.small(pose_head="points", pt_fine_restart=0.001,
                                                    pt_restart_depth=0.5).to_dict()).restart_depth == 0.5
 
@@ -1425,11 +1437,13 @@ def test_the_exported_loop_is_the_steps_and_ends_when_the_level_stops(tmp_path, 
     assert samples == 3 * ran
 
 
-def test_scan_gate_is_the_numpy_trackers():
+@pytest.mark.parametrize("stride", [1, 4])
+def test_scan_gate_is_the_numpy_trackers(stride):
     """The graph's gate keeps the points the numpy tracker keeps on the hand-built case
     (`test_direct._gate_case`); on the real pair 11-12 with the bundled settings and the gate at
     0.05, the solve with every confidence 1 gives the numpy tracker's motion within 1e-6 m, and the
-    gate moves that motion by more than that (it drops points there)."""
+    gate moves that motion by more than that (it drops points there); also with the Huber median
+    over every fourth point, which both count by place in the point list the gate thinned."""
     from d3lvo_deploy.direct import scan_gated
     from models.point_solver import scan_kept
     from test_direct import _gate_case
@@ -1438,7 +1452,8 @@ def test_scan_gate_is_the_numpy_trackers():
     kept = scan_kept(_t(forward)[None], _t(prev.points)[None], _t(depth)[None, None], _k(prev.levels[0].K), 0.05)
     assert kept[0].tolist() == [1.0, 0.0, 1.0, 0.0]
     assert len(scan_gated(prev, depth, forward, 0.05).points) == 2
-    cfg = DirectConfig(affine_brightness=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05)
+    cfg = DirectConfig(affine_brightness=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05,
+                       median_stride=stride)
     seq, init, prev, cur = _pair_11_12(cfg)
     want = track(prev, cur, init, cfg)
     ungated = track(prev, cur, init, replace(cfg, scan_gate=0.0))
@@ -1446,6 +1461,7 @@ def test_scan_gate_is_the_numpy_trackers():
     pts, mask = pad_points(prev.points, cfg.points.capacity)
     images = [_t(grey_image(seq.image(i)))[None, None] for i in (11, 12)]
     got = solve(*image_pyramids(*images, 3), _t(pts), _t(mask), _k(seq.calib.K2), _t(init)[None],
-                SolverSettings(cfg.iterations, affine=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05),
+                SolverSettings(cfg.iterations, affine=True, fine_restart=0.001, restart_depth=0.5, scan_gate=0.05,
+                               median_stride=stride),
                 depth2=_t(cur.depth)[None, None])[-1][0].numpy()
     assert np.abs(got[:3, 3] - want[:3, 3]).max() < 1e-6 and np.abs(got[:3, :3] - want[:3, :3]).max() < 1e-7
