@@ -135,7 +135,8 @@ class D3LVOConfig:
     # above 0: the flow+pose graph also takes frame t's LiDAR depth (`scan_depth2`), and before
     # each solve (both) the points of frame t-1 that it puts more than this (relative depth) from
     # where the starting motion moves them get weight 0 (`point_solver.scan_kept`): what moved, before the
-    # solve can follow it (docs/evaluation.md). Training solves without it, as for pt_restart_depth
+    # solve can follow it (docs/evaluation.md). The choice between the two poses (pt_select ...)
+    # reads the confidence's weights, not gated. Training solves without it, as for pt_restart_depth
     pt_scan_gate: float = 0.0
     pt_capacity: int = 2048  # length of the point list (the graph's fixed input size)
     pt_min_gradient: float = 0.02
