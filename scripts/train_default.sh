@@ -628,3 +628,4 @@ for s in 318 322; do
   .venv/bin/python scripts/masked_tracker.py "$OUT/data/traffic_$s" "$OUT/eval/gated_shadows_$s.txt" --shadows
   for e in movers shadows; do "$D3LVO" eval --gt "$OUT/data/traffic_$s/poses.txt" --est "$OUT/eval/gated_${e}_$s.txt"; done
 done
+.venv/bin/python scripts/selection_rules.py --quick "$OUT/data/traffic_322"
