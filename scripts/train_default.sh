@@ -629,3 +629,6 @@ for s in 318 322; do
   for e in movers shadows; do "$D3LVO" eval --gt "$OUT/data/traffic_$s/poses.txt" --est "$OUT/eval/gated_${e}_$s.txt"; done
 done
 .venv/bin/python scripts/selection_rules.py --quick "$OUT/data/traffic_322"
+# the pose choice's rules again with the gate, on the validation drives (docs/model-card.md, "With
+# the scan gate"; run as two halves on two cores and the sums added)
+.venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
