@@ -632,3 +632,10 @@ done
 # the pose choice's rules again with the gate, on the validation drives (docs/model-card.md, "With
 # the scan gate"; run as two halves on two cores and the sums added)
 .venv/bin/python scripts/selection_rules.py --quick "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+# the motion guard at 30 with the gate, both methods, on every held-out traffic drive
+# (docs/evaluation.md, "The motion guard")
+for d in "$OUT"/data/traffic_3?? "$OUT"/data/own_91?; do
+  "$D3LVO" run "$d" --method direct --max-accel 30 --out "$OUT/eval/gated_guard_direct_$(basename "$d").txt" --overwrite
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --max-accel 30 \
+    --out "$OUT/eval/gated_guard_net_$(basename "$d").txt" --overwrite
+done
