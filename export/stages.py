@@ -47,8 +47,7 @@ def classical_input_names(model: D3LVO) -> list[str]:
     """The classical solve reads frame t's scan for the restart's check and the scan gate only
     (not for judging between the two poses, which the weighted graph does)."""
     cfg = model.cfg
-    return solver_input_names(model, cfg.checks_restart_on_scan or (cfg.point_solver and cfg.pt_scan_gate > 0)) \
-        + ["init_pose"]
+    return solver_input_names(model, cfg.checks_restart_on_scan or cfg.gates_on_scan) + ["init_pose"]
 
 
 def encoder_output_names(model: D3LVO) -> list[str]:

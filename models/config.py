@@ -342,8 +342,13 @@ class D3LVOConfig:
     def reads_scan(self) -> bool:
         """The flow+pose graph takes frame t's LiDAR depth (`scan_depth2`): for the restart's check,
         to gate the points before the solve, or to judge between the weighted and the classical pose."""
-        return self.checks_restart_on_scan or (self.point_solver and self.pt_scan_gate > 0) or (
+        return self.checks_restart_on_scan or self.gates_on_scan or (
             self.point_solver and self.pt_select > 0 and (self.pt_select_scan > 0 or self.pt_select_scan_pass > 0))
+
+    @property
+    def gates_on_scan(self) -> bool:
+        """Both solves drop the points frame t's scan puts elsewhere (`pt_scan_gate`)."""
+        return self.point_solver and self.pt_scan_gate > 0
 
     @property
     def gn_levels(self) -> tuple[int, ...]:

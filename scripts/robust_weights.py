@@ -32,7 +32,7 @@ import numpy as np
 
 from d3lvo_deploy import direct
 from d3lvo_deploy.bundled import bundled_model_dir
-from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, depth_errors
+from d3lvo_deploy.direct import DirectConfig, DirectOdometry, TrackedFrame, scan_gated
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.evaluation import evaluate
 from d3lvo_deploy.manifest import load_manifest
@@ -84,11 +84,11 @@ def run(variant: str, drive: Path) -> float | None:
 
         def gated(prev: TrackedFrame, cur: TrackedFrame, start: np.ndarray, c: DirectConfig) -> np.ndarray:
             A = shipped_track(prev, cur, start, c)
-            bad = np.nan_to_num(depth_errors(prev.points, A, cur.depth, prev.levels[0].K), nan=0.0) > tau
-            dropped.append(float(bad.mean()) if len(bad) else 0.0)
-            if not bad.any() or (~bad).sum() < 12:
+            kept = scan_gated(prev, cur.depth, A, tau)  # the shipped gate, at the solved motion
+            dropped.append(1.0 - len(kept.points) / len(prev.points) if len(prev.points) else 0.0)
+            if kept is prev or len(kept.points) < 12:
                 return A
-            return shipped_track(TrackedFrame(prev.levels, prev.points[~bad], prev.depth), cur, start, c)
+            return shipped_track(kept, cur, start, c)
 
         direct.track = gated
     try:
