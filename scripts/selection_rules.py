@@ -1,6 +1,6 @@
 """Choose `pt_select`, `pt_select_rotation` and the scan's judgement (`pt_select_scan[_pass]`) on validation drives.
 
-    python scripts/selection_rules.py [--ckpt CKPT] [--quick] DRIVE...
+    python scripts/selection_rules.py [--ckpt CKPT] [--quick] [--cache DIR] DRIVE...
 
 Runs the checkpoint once per drive (torch, one thread) and records, per pair, the weighted and the
 classical solve's poses and the consensus gain. Each pair starts from the weighted pose whatever is
@@ -27,12 +27,17 @@ photometric side asked for more: a test passed on M of the last K pairs, a share
 average over the last K pairs, or a gain that stands out from its own spread over the trusted
 points (its mean in standard errors of that mean, `gain_significance`). `shipped` in a rule's
 name: the photometric test at the shipped thresholds (`pt_select` 0.005, `pt_select_rotation`
-0.05), without the cap and the scan's pass unless the name says so; `ships`: what ships.
+0.05), without the cap and the scan's pass unless the name says so; `ships`: what ships. And the
+grid of thresholds again, each with what ships beside the photometric test (the cap at 0.7, or the
+scan's pass at 0.7). `--cache DIR` keeps each drive's record (keyed by the checkpoint's hash and
+whether `--quick`), so that scoring the rules on other drives, or again, runs no network twice.
 """
 
 from __future__ import annotations
 
+import hashlib
 import itertools
+import pickle
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -160,18 +165,34 @@ def score(drive: Drive, relatives: list[np.ndarray]) -> tuple[float, str]:
     return (r.t_rel, "") if r.t_rel is not None else (r.ate, " ate")
 
 
-def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
+def cached_pairs(model, drive: str, quick: bool, cache: Path | None, key: str) -> list[dict]:
+    """`record_pairs`, read from `cache` where this checkpoint's record of the drive is kept."""
+    if cache is None:
+        return record_pairs(model, drive, quick)
+    path = cache / f"{Path(drive).resolve().name}-{key}{'-quick' if quick else ''}.pkl"
+    if path.is_file():
+        return pickle.loads(path.read_bytes())
+    pairs = record_pairs(model, drive, quick)
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".part")
+    tmp.write_bytes(pickle.dumps(pairs))
+    tmp.replace(path)
+    return pairs
+
+
+def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path | None = None) -> None:
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
             sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
     torch.set_num_threads(1)
     ck = load_checkpoint(checkpoint)
+    key = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:12]
     # both solves, every pair (what is kept is chosen below, rule by rule)
     ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0, pt_select_share=1.0)
     model = build_model(ck)
     pairs = {}
     for drive in drives:
-        pairs[drive] = record_pairs(model, drive, quick)
+        pairs[drive] = cached_pairs(model, drive, quick, cache, key)
         for p in pairs[drive]:
             D = p["C"][:3, :3].T @ p["W"][:3, :3]
             p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
@@ -235,6 +256,10 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False) -> None:
                    np.mean([ps[j]["share"] for j in last(i, k)]) >= f)) for k, f in RECENT_SHARE]
         rules += [(f"ships, and its gain above {z} standard errors", ships(lambda ps, i, z=z:
                    ps[i]["significance"] > z)) for z in SIGNIFICANCE]
+        # the photometric test's thresholds chosen again with what ships beside it
+        rules += [(f"ships at pt_select {g} pt_select_rotation {r}", lambda ps, i, t=test(g, r):
+                   (t(ps, i) and ps[i]["share"] <= 0.7) or bool(fits(ps, i, "scan", 0.7, True)))
+                  for g, r in itertools.product(GAINS, ROTATIONS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
         scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
@@ -254,6 +279,12 @@ if __name__ == "__main__":
     args = sys.argv[1:]
     quick = "--quick" in args
     args = [a for a in args if a != "--quick"]
+    cache = None
+    if "--cache" in args:
+        i = args.index("--cache")
+        if i + 1 >= len(args):
+            sys.exit("--cache needs a folder")
+        cache, args = Path(args[i + 1]), args[:i] + args[i + 2:]
     ckpt = bundled_model_dir() / "default.pt"
     if args[:1] == ["--ckpt"] and len(args) > 1:
         ckpt, args = Path(args[1]), args[2:]
@@ -261,4 +292,4 @@ if __name__ == "__main__":
         sys.exit(__doc__)
     if not ckpt.is_file():
         sys.exit(f"{ckpt}: no such checkpoint")
-    main(args, ckpt, quick)
+    main(args, ckpt, quick, cache)
