@@ -639,3 +639,21 @@ for d in "$OUT"/data/traffic_3?? "$OUT"/data/own_91?; do
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --max-accel 30 \
     --out "$OUT/eval/gated_guard_net_$(basename "$d").txt" --overwrite
 done
+# the pose choice's thresholds chosen again with the gate on, on the validation drives (the cap and
+# the scan's pass beside the photometric test; docs/model-card.md, "The pose choice's thresholds
+# with the scan gate"), then scored once on every held-out drive from the same records; pt_select
+# 0.003 set in default.pt and exported into the bundled folder, every held-out drive run with the
+# network again (the classical mode does not read it), and the demo
+.venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+.venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/heldout_?? "$OUT"/data/static_2?? \
+  "$OUT"/data/demo_909 "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
+.venv/bin/python -c "from models.checkpoint import slim_checkpoint; slim_checkpoint('d3lvo_deploy/default_model/default.pt', \
+  'd3lvo_deploy/default_model/default.pt', dict(pt_select=0.003))"
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out d3lvo_deploy/default_model --overwrite
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/own_91? "$OUT"/data/demo_909; do
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/select_net_$(basename "$d").txt" --overwrite
+done
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/select_0.005" --overwrite --set pt_select=0.005
+"$D3LVO" run "$OUT/data/traffic_322" --onnx "$OUT/select_0.005" --backend onnxruntime --threads 1 \
+  --out "$OUT/eval/select_0.005_traffic_322.txt" --overwrite
+"$D3LVO" demo --out "$OUT/demo"

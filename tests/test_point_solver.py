@@ -329,7 +329,7 @@ def test_consensus_gain_tells_a_mover_from_a_false_detection():
     """The plane's left half moved (another object) or not (a static scene), its points weighted
     0 either way, as a confidence that flags them would. With the mover, the classical pose
     (every point at full weight) is pulled off the static right half, which the weighted pose
-    explains: the gain is large, and above the bundled threshold pt_select = 0.005. Without it
+    explains: the gain is large, and above the bundled threshold pt_select = 0.003. Without it
     both poses are the true motion and the gain is nil, so `pt_select` keeps the classical pose.
     Both figures agree with the gain written out in numpy."""
     A = make_se3(axis_angle_to_rot([0.0, 0.01, 0.0]), [0.05, 0.0, 0.6])
