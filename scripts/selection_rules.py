@@ -31,7 +31,8 @@ scan gate; with it the bundled model ships 0.003, the `ships at` rows), without 
 scan's pass unless the name says so; `ships`: the cap and the scan's pass beside that test. And the
 grid of thresholds again, each with what ships beside the photometric test (the cap at 0.7, or the
 scan's pass at 0.7). `--cache DIR` keeps each drive's record (keyed by the checkpoint's hash and
-whether `--quick`), so that scoring the rules on other drives, or again, runs no network twice.
+whether `--quick`), so that scoring the rules on other drives, or again, runs no network twice;
+the key names the drive's folder, not its content: empty DIR when a drive is rendered again.
 """
 
 from __future__ import annotations
