@@ -78,7 +78,7 @@ def run(variant: str, drive: Path) -> float | None:
         w = WEIGHTS[variant]
         direct.huber_weights = lambda r, k=None: w(r, direct.huber_threshold(r) if k is None else k)
     elif variant.startswith("scangate:"):
-        if not cfg.checks_restart_on_scan:
+        if not cfg.reads_scan:
             raise D3LVOInputError(None, "scangate needs a model whose classical mode keeps frame t's scan")
         tau = float(variant.split(":")[1])
 

@@ -249,8 +249,12 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
         capped = lambda ps, i: shipped(ps, i) and ps[i]["share"] <= 0.7  # noqa: E731
         last = lambda i, k: range(max(0, i - k + 1), i + 1)  # noqa: E731
 
+        def beside(photometric):
+            """What ships beside a photometric test: the test under the cap at 0.7, or the scan's pass at 0.7."""
+            return lambda ps, i: (photometric(ps, i) and ps[i]["share"] <= 0.7) or bool(fits(ps, i, "scan", 0.7, True))
+
         def ships(extra):
-            return lambda ps, i: (capped(ps, i) and extra(ps, i)) or bool(fits(ps, i, "scan", 0.7, True))
+            return beside(lambda ps, i: shipped(ps, i) and extra(ps, i))
 
         rules += [(f"ships, and passed on {m} of the last {k} pairs", ships(lambda ps, i, k=k, m=m:
                    sum(capped(ps, j) for j in last(i, k)) >= m)) for k, m in RECENT]
@@ -259,8 +263,7 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
         rules += [(f"ships, and its gain above {z} standard errors", ships(lambda ps, i, z=z:
                    ps[i]["significance"] > z)) for z in SIGNIFICANCE]
         # the photometric test's thresholds chosen again with what ships beside it
-        rules += [(f"ships at pt_select {g} pt_select_rotation {r}", lambda ps, i, t=test(g, r):
-                   (t(ps, i) and ps[i]["share"] <= 0.7) or bool(fits(ps, i, "scan", 0.7, True)))
+        rules += [(f"ships at pt_select {g} pt_select_rotation {r}", beside(test(g, r)))
                   for g, r in itertools.product(GAINS, ROTATIONS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
