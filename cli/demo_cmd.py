@@ -19,6 +19,7 @@ if TYPE_CHECKING:  # the [synth] extra; imported where the demo runs
     from d3lvo_deploy.backends import SessionConfig
     from d3lvo_deploy.direct import DirectConfig
     from d3lvo_deploy.evaluation import SequenceResult
+    from d3lvo_deploy.onnx_model import StageModel
     from d3lvo_deploy.pipeline import RunSummary
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.synth.generator import SynthConfig
@@ -67,6 +68,7 @@ def demo_command(
     from d3lvo_deploy.synth.generator import SynthConfig, check_config
     from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
     from d3lvo_deploy.backends import SessionConfig
+    from d3lvo_deploy.onnx_model import StageModel
     from d3lvo_deploy.results import make_output_folder
 
     from .eval_cmd import _fmt, report_table
@@ -89,6 +91,8 @@ def demo_command(
         _render(out_dir / d.name, d)
 
     sc = SessionConfig(backend="auto").resolved()  # OpenVINO where installed: the faster engine here
+    # opened once for every drive and the real frames: OpenVINO compiles (or loads) each stage once
+    model = StageModel(model_dir, sc)
     engine = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}[sc.backend]
     console.print(lead("2/3", "bold", f" D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) and, "
                                       "beside it, its classical mode (--method direct) on "
@@ -99,7 +103,7 @@ def demo_command(
     for d in drives:
         # with traffic, pictures of what the network sees: its confidence is low on what moves
         viz = out_dir / f"{d.name}_viz" if d.cfg.traffic else None
-        res, base, summary = _score(out_dir, d, model_dir, sc, classical, viz, every)
+        res, base, summary = _score(out_dir, d, model, sc, classical, viz, every)
         if first_summary is None:
             first_summary = summary
         reports[f"D3LVO (ONNX), {d.label}"] = EvalReport([res], "none")
@@ -119,13 +123,13 @@ def demo_command(
     else:
         console.print(lead("3/3", "bold", f" the 20 real KITTI frames in {real}"), highlight=False)
         bundled = Path(model_dir).resolve() == bundled_model_dir().resolve()
-        _real_frames(out_dir, KittiSequence.open(real), model_dir, sc, classical, bundled)
+        _real_frames(out_dir, KittiSequence.open(real), model, sc, classical, bundled)
     mb = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file()) / 1e6
     console.print(f"demo finished in {time.perf_counter() - t_start:.0f} s; {out_dir} holds {mb:.0f} MB "
                   "(delete it when done)", highlight=False)
 
 
-def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: SessionConfig, classical: DirectConfig,
+def _real_frames(out_dir: Path, seq: KittiSequence, model: StageModel, sc: SessionConfig, classical: DirectConfig,
                  bundled: bool) -> None:
     """The model and its classical mode on real frames that have no ground truth, beside LiDAR-only
     odometry on the same scans (KISS-ICP, where the `[test]` extra installed it): how far each
@@ -139,7 +143,7 @@ def _real_frames(out_dir: Path, seq: KittiSequence, model_dir: Path, sc: Session
     from rich.table import Table
 
     path, direct_path = out_dir / "real_r0926_poses.txt", out_dir / "real_r0926_direct.txt"
-    run_sequence(seq, model_dir, RunConfig(out=path, overwrite=True), sc)
+    run_sequence(seq, None, RunConfig(out=path, overwrite=True), sc, model=model)
     run_sequence(seq, None, RunConfig(out=direct_path, overwrite=True),
                  odometry=DirectOdometry(seq.calib, classical))
     runs = {"D3LVO (ONNX)": read_poses(path).poses, "--method direct (no learning)": read_poses(direct_path).poses}
@@ -177,7 +181,7 @@ def _render(seq_dir: Path, d: DemoDrive) -> None:
         generate(seq_dir, d.cfg, progress=lambda n: bar.update(task, completed=n), resume=False)
 
 
-def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, classical: DirectConfig,
+def _score(out_dir: Path, d: DemoDrive, model: StageModel, sc: SessionConfig, classical: DirectConfig,
            viz: Path | None, every: int) -> tuple[SequenceResult, SequenceResult, RunSummary]:
     """The model and, beside it, its classical mode (the same solver with every point weighted 1)
     on the drive: both scored against its ground truth, and the model's run summary (latency);
@@ -193,24 +197,25 @@ def _score(out_dir: Path, d: DemoDrive, model_dir: Path, sc: SessionConfig, clas
         for old in viz.glob("*.png"):
             old.unlink()
     poses_path, direct_path = out_dir / f"{d.name}_poses.txt", out_dir / f"{d.name}_direct.txt"
-    summary = _run(f"run, {d.label}", seq, model_dir,
-                   RunConfig(out=poses_path, overwrite=True, viz_dir=viz, viz_every=every), sc)
-    _run(f"direct, {d.label}", seq, None, RunConfig(out=direct_path, overwrite=True),
+    summary = _run(f"run, {d.label}", seq, RunConfig(out=poses_path, overwrite=True, viz_dir=viz, viz_every=every),
+                   sc, model=model)
+    _run(f"direct, {d.label}", seq, RunConfig(out=direct_path, overwrite=True),
          odometry=DirectOdometry(seq.calib, classical))
     name = f"seed {d.cfg.seed}"
     return (evaluate(seq.ground_truth, read_poses(poses_path), name=name),
             evaluate(seq.ground_truth, read_poses(direct_path), name=name), summary)
 
 
-def _run(label: str, seq: KittiSequence, model_dir: Path | None, rc, sc: SessionConfig | None = None,
+def _run(label: str, seq: KittiSequence, rc, sc: SessionConfig | None = None, model: StageModel | None = None,
          odometry=None) -> RunSummary:
-    """`run_sequence` under a progress bar labelled `label`."""
+    """`run_sequence` under a progress bar labelled `label`: the network (`model`, opened with
+    `sc`) or another tracker (`odometry`)."""
     from d3lvo_deploy.pipeline import run_sequence
 
     with frame_progress() as bar:
         task = bar.add_task(label, total=len(seq), rate="")
         engine = {} if sc is None else {"sc": sc}  # the direct tracker runs no engine
-        return run_sequence(seq, model_dir, rc, **engine, odometry=odometry,
+        return run_sequence(seq, None, rc, **engine, model=model, odometry=odometry,
                             progress=lambda n, tot, ms: bar.update(task, completed=n, rate=f"{ms:.0f} ms a frame"))
 
 

@@ -984,10 +984,11 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
 
     import onnxruntime as ort
 
-    from export.onnx_export import ExportConfig, _sample_inputs, export_checkpoint
-    from export.stages import FlowPoseStage, flowpose_input_names
-    from models.checkpoint import build_model, load_checkpoint, save_checkpoint
+    from export.onnx_export import DEFAULT_OPSET, _export_one, _sample_inputs
+    from export.stages import ClassicalStage, FlowPoseStage, flowpose_input_names
+    from models.checkpoint import build_model, load_checkpoint
     from models.d3lvo import D3LVO
+    from models.sampling import gathered
 
     fixture = build_model(load_checkpoint(points_model[0]))
     # without the restart's scan check: the choice between the weighted and the classical pose alone
@@ -1030,8 +1031,17 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     assert angles.min() > 1e-3 and angles.max() > 1.5 * angles.min(), angles
     gate = {"pt_select": 1e-6, "pt_select_rotation": float(np.sqrt(angles.prod())), "pt_refine": 2,
             "pt_restart_depth": 0.0}
-    save_checkpoint(tmp_path / "ck.pt", model, model.cfg, step=0)
-    export_checkpoint(tmp_path / "ck.pt", ExportConfig(out=tmp_path / "gate", dynamic_batch=True, solver=gate))
+    # the three graphs the choice runs in, each in both forms (GridSample's and onnxruntime's Gathers),
+    # exported as `export_checkpoint` does; completion and encoder play no part
+    gated = D3LVO(replace(model.cfg, **gate)).eval()
+    gated.load_state_dict(model.state_dict())
+    (tmp_path / "gate").mkdir()
+    sample = _sample_inputs(gated, gated.cfg.height, gated.cfg.width)
+    for name, stage in (("flowpose", FlowPoseStage(gated)), ("classical", ClassicalStage(gated)),
+                        ("flowpose_weighted", FlowPoseStage(gated, weighted=True))):
+        for suffix, gathering in ((".onnx", False), (".onnxruntime.onnx", True)):
+            with gathered(gathering):
+                _export_one(stage.eval(), sample[name], tmp_path / "gate" / f"{name}{suffix}", DEFAULT_OPSET, dynamic_batch=True)
     want = np.stack([weighted[i] if angles[i] > angles.min() else classical[i] for i in range(2)])
     for graph in ("flowpose.onnx", "flowpose.onnxruntime.onnx"):  # GridSample's and onnxruntime's
         sess = ort.InferenceSession(str(tmp_path / "gate" / graph), providers=["CPUExecutionProvider"])
@@ -1054,11 +1064,9 @@ def test_rotation_gate_in_the_exported_graphs_pair_by_pair(points_model, tmp_pat
     # the cap exported: the flow+pose graph that takes the classical pose, with the gain alone and
     # `pt_select_share` between the pairs' shares, keeps the weighted pose of the pair whose network
     # distrusts less and the classical pose of the other (torch's choice above)
-    from export.onnx_export import DEFAULT_OPSET, _export_one
-
     cap = D3LVO(replace(model.cfg, pt_refine=2, pt_select=1e-6, pt_select_share=float(shares.mean()))).eval()
     cap.load_state_dict(model.state_dict())
-    stage = FlowPoseStage(cap, weighted=True)
+    stage = FlowPoseStage(cap, weighted=True).eval()
     _export_one(stage, _sample_inputs(cap, cap.cfg.height, cap.cfg.width)["flowpose_weighted"], tmp_path / "cap.onnx",
                 DEFAULT_OPSET, dynamic_batch=True)
     capped = ort.InferenceSession(str(tmp_path / "cap.onnx"), providers=["CPUExecutionProvider"])
