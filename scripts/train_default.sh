@@ -657,3 +657,8 @@ done
 "$D3LVO" run "$OUT/data/traffic_322" --onnx "$OUT/select_0.005" --backend onnxruntime --threads 1 \
   --out "$OUT/eval/select_0.005_traffic_322.txt" --overwrite
 "$D3LVO" demo --out "$OUT/demo"
+# a learned choice between the weighted and the classical pose (a logistic regression on the
+# records above), fitted on the validation drives and scored on the held-out ones
+# (docs/model-card.md, "A learned choice between the two poses")
+.venv/bin/python scripts/learned_choice.py --cache "$OUT/selcache" --fit "$OUT"/data/val_static* "$OUT"/data/val_traffic* \
+  --score "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/demo_909 "$OUT"/data/traffic_3?? "$OUT"/data/own_91?

@@ -1,0 +1,169 @@
+"""A learned choice between the weighted and the classical pose, against the thresholds that ship.
+
+    python scripts/learned_choice.py --cache DIR --fit DRIVE... --score DRIVE...
+
+The bundled graph keeps the classical pose of a pair unless its photometric test (the gain and
+the rotation between the two poses, under the cap on the share of distrusted points) or frame t's
+scan (the weighted pose's scan error below 0.7 times the classical one's) says otherwise: four
+hand-set thresholds. Here a logistic regression reads the same numbers per pair (the gain, the
+rotation and translation between the poses, the distrusted share, both scan-error ratios, the
+gain's significance) and is fitted on the `--fit` drives to tell where the weighted pose is the
+closer to the ground truth (translation error plus 0.1 m per degree of rotation error), each pair
+weighted by how much the choice matters there (the difference of the two errors).
+
+Prints, on the `--fit` drives, each threshold on the fitted probability alone, and beside what
+ships (ships or p > th, ships and p > th); picks the rule by the criterion the shipped thresholds
+were chosen by (static drives' t_rel summed at most the classical mode's, higher on at most 4, then
+the largest smallest cut on the traffic drives); then scores, on the `--score` drives, what ships,
+the rule picked, the weighted pose always, and a per-pair oracle (the pose closer to the ground
+truth, by the same error): the most any choice between these two poses could give.
+
+Reads the per-pair records of `scripts/selection_rules.py --quick --cache DIR` (the bundled
+checkpoint's), recording those that are missing (torch, one thread, about a minute per drive).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from selection_rules import Drive, cached_pairs, score  # noqa: E402
+
+from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
+from d3lvo_deploy.geometry import change_frame, rotation_angle_precise  # noqa: E402
+from models.checkpoint import build_model, load_checkpoint  # noqa: E402
+from models.point_solver import NO_EVIDENCE  # noqa: E402
+
+LEVER = 0.1  # m of translation error per degree of rotation error, in a pair's label
+THRESHOLDS = (0.5, 0.7, 0.9, 0.95)
+BESIDE = (0.3, 0.5, 0.7, 0.9, 0.95)
+
+
+def log_ratio(p: dict, name: str) -> tuple[float, float]:
+    """log(W's scan error / C's), and 1 where the scan judges (0, 0 where a pose puts no trusted point on a return)."""
+    w, c = p[f"{name}_W"], p[f"{name}_C"]
+    if max(w, c) >= NO_EVIDENCE:
+        return 0.0, 0.0
+    return float(np.log(max(w, 1e-9) / max(c, 1e-9))), 1.0
+
+
+def features(p: dict) -> list[float]:
+    scan, judged = log_ratio(p, "scan")
+    return [np.arcsinh(p["gain"] / 1e-3), p["rotation"] / 0.05, np.log10(np.linalg.norm(p["W"][:3, 3] - p["C"][:3, 3]) + 1e-5),
+            p["share"], scan, log_ratio(p, "scan_all")[0], judged, float(np.clip(p["significance"], -20, 20)) / 5]
+
+
+def ships(p: dict) -> bool:
+    """The bundled graph's choice (pt_select 0.003, pt_select_rotation 0.05, pt_select_share 0.7, pt_select_scan_pass 0.7)."""
+    scan, judged = log_ratio(p, "scan")
+    return (p["gain"] > 0.003 and p["rotation"] > 0.05 and p["share"] <= 0.7) or bool(judged and np.exp(scan) < 0.7)
+
+
+def pair_errors(p: dict, gt: np.ndarray, T: np.ndarray) -> tuple[float, float]:
+    """Each pose's error against the ground-truth motion: translation m + LEVER x rotation deg."""
+    out = []
+    for A in (p["W"], p["C"]):
+        E = np.linalg.inv(change_frame(A, T)) @ gt
+        out.append(float(np.linalg.norm(E[:3, 3]) + LEVER * np.degrees(rotation_angle_precise(E[:3, :3]))))
+    return out[0], out[1]
+
+
+def fit(X: np.ndarray, y: np.ndarray, w: np.ndarray, l2: float = 1e-2):
+    """Weighted, L2-regularised logistic regression by Newton's method; returns the probability."""
+    mu, sd = X.mean(0), X.std(0) + 1e-9
+    design = lambda X: np.c_[(X - mu) / sd, np.ones(len(X))]  # noqa: E731
+    Z, b, w = design(X), np.zeros(X.shape[1] + 1), w / w.mean()
+    for _ in range(100):
+        p = 1 / (1 + np.exp(-Z @ b))
+        step = np.linalg.solve((Z * (w * p * (1 - p))[:, None]).T @ Z + l2 * np.eye(len(b)),
+                               Z.T @ (w * (p - y)) + l2 * np.r_[b[:-1], 0])
+        b -= step
+        if np.abs(step).max() < 1e-10:
+            break
+    return (lambda X: 1 / (1 + np.exp(-design(X) @ b))), b
+
+
+def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
+    torch.set_num_threads(1)
+    ckpt = bundled_model_dir() / "default.pt"
+    key = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:12]
+    model = None
+    pairs, info, labels = {}, {}, {}
+    for d in fit_drives + score_drives:
+        path = cache / f"{Path(d).resolve().name}-{key}-quick.pkl"
+        if not path.is_file() and model is None:  # as selection_rules.py records them: both solves on every pair
+            from dataclasses import replace
+
+            ck = load_checkpoint(ckpt)
+            ck["config"] = replace(ck["config"], pt_select=0.003, pt_select_rotation=0.0, pt_select_share=1.0)
+            model = build_model(ck)
+        pairs[d] = cached_pairs(model, d, True, cache, key)
+        info[d] = Drive.open(d)
+        g = info[d].gt.poses
+        for p in pairs[d]:
+            p["rotation"] = float(np.degrees(rotation_angle_precise(p["C"][:3, :3].T @ p["W"][:3, :3])))
+        labels[d] = [pair_errors(p, np.linalg.inv(g[i]) @ g[i + 1], info[d].T_cam0_cam2) for i, p in enumerate(pairs[d])]
+    X = np.array([features(p) for d in fit_drives for p in pairs[d]])
+    errs = np.array([e for d in fit_drives for e in labels[d]])
+    prob, coef = fit(X, (errs[:, 0] < errs[:, 1]).astype(float), np.abs(errs[:, 0] - errs[:, 1]))
+    names = "gain rotation translation share scan scan_all judged significance intercept".split()
+    print(f"fitted on {len(X)} pairs of {len(fit_drives)} drives; weighted pose the closer on {np.mean(errs[:, 0] < errs[:, 1]):.1%}")
+    print("coefficients (standardised features): " + ", ".join(f"{n} {c:+.3f}" for n, c in zip(names, coef)))
+    P = {d: prob(np.array([features(p) for p in pairs[d]])) for d in pairs}
+    classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in pairs}
+
+    def row(name: str, drives: list[str], keep) -> tuple[float, int, float, dict]:
+        sc = {d: score(info[d], [p["W"] if keep(d, i) else p["C"] for i, p in enumerate(pairs[d])])[0] for d in drives}
+        static = [sc[d] - classical[d] for d in drives if not info[d].traffic]
+        cut = {d: 1 - sc[d] / classical[d] for d in drives if info[d].traffic}
+        text = f"{name:30s} static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, " \
+               f"lower on {sum(x < -1e-4 for x in static)}"
+        if cut:
+            text += f"; traffic: cut mean {100 * np.mean(list(cut.values())):.1f} %, smallest {100 * min(cut.values()):.1f} %"
+        print(text, flush=True)
+        return sum(static), sum(x > 1e-4 for x in static), min(cut.values(), default=0.0), cut
+
+    shipped = lambda d, i: ships(pairs[d][i])  # noqa: E731
+    rules = {"ships": shipped}
+    rules.update({f"p > {t}": (lambda d, i, t=t: P[d][i] > t) for t in THRESHOLDS})
+    rules.update({f"ships or p > {t}": (lambda d, i, t=t: shipped(d, i) or P[d][i] > t) for t in BESIDE})
+    rules.update({f"ships and p > {t}": (lambda d, i, t=t: shipped(d, i) and P[d][i] > t) for t in BESIDE})
+    print(f"on the {len(fit_drives)} drives fitted on:")
+    fitted = {name: row(name, fit_drives, keep) for name, keep in rules.items()}
+    eligible = {n: r for n, r in fitted.items() if n != "ships" and r[0] <= 0 and r[1] <= 4}
+    if not eligible:
+        print("no learned rule meets the criterion (static sum <= 0, higher on <= 4)")
+        return
+    best = max(eligible, key=lambda n: eligible[n][2])
+    print(f"picked: {best} (smallest traffic cut {100 * eligible[best][2]:.1f} % against {100 * fitted['ships'][2]:.1f} % "
+          "for what ships)")
+    print(f"on the {len(score_drives)} drives scored:")
+    oracle = {d: [w < c for w, c in labels[d]] for d in score_drives}
+    cuts = {name: row(name, score_drives, keep)[3] for name, keep in (
+        ("ships", shipped), (best, rules[best]), ("weighted always", lambda d, i: True),
+        ("oracle per pair", lambda d, i: oracle[d][i]))}
+    print("traffic cut % per drive (ships / picked / weighted always / oracle): " + "  ".join(
+        f"{Path(d).name}: " + "/".join(f"{100 * c[d]:.0f}" for c in cuts.values()) for d in cuts["ships"]))
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    try:
+        cache = Path(args[args.index("--cache") + 1])
+        f, s = args.index("--fit"), args.index("--score")
+    except (ValueError, IndexError):
+        sys.exit(__doc__)
+    fit_drives, score_drives = (args[f + 1 : s], args[s + 1 :]) if f < s else (args[f + 1 :], args[s + 1 : f])
+    fit_drives = [a for a in fit_drives if a != "--cache" and a != str(cache)]
+    score_drives = [a for a in score_drives if a != "--cache" and a != str(cache)]
+    for d in fit_drives + score_drives:
+        if not (Path(d) / "poses.txt").is_file():
+            sys.exit(f"{d}: no poses.txt, the ground truth this script scores against")
+    if not fit_drives or not score_drives:
+        sys.exit("--fit and --score each need drives")
+    main(cache, fit_drives, score_drives)
