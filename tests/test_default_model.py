@@ -33,7 +33,7 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
     classical mode and scored; on the real frames both beside LiDAR-only odometry, each end's
     distance from its end as the pose files and KISS-ICP give it. A second demo with
     `--no-traffic` reuses the static render, writes no pictures, and without kiss-icp says how
-    to get the comparison and prints no LiDAR-only row."""
+    to get the comparison and prints no LiDAR-only row. Each demo opens the model once."""
     import numpy as np
 
     from d3lvo_deploy import lidar_reference
@@ -41,9 +41,15 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
 
+    from d3lvo_deploy.onnx_model import StageModel
+
+    opened = []  # each model the demo opens: one for both drives and the real frames (one compile per stage)
+    init = StageModel.__init__
+    monkeypatch.setattr(StageModel, "__init__", lambda self, *a, **k: (opened.append(a[0]), init(self, *a, **k))[1])
     demo = tmp_path / "demo"
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12"])
     assert r.exit_code == 0, r.output
+    assert len(opened) == 1, opened
     assert "ATE m" in r.output and "latency" in r.output
     for drive in ("synthetic_heldout", "synthetic_traffic"):
         assert (demo / f"{drive}.png").stat().st_size > 1000
