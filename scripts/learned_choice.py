@@ -20,6 +20,7 @@ truth, by the same error): the most any choice between these two poses could giv
 
 Reads the per-pair records of `scripts/selection_rules.py --quick --cache DIR` (the bundled
 checkpoint's), recording those that are missing (torch, one thread, about a minute per drive).
+Needs the `[analysis]` extra (scikit-learn).
 """
 
 from __future__ import annotations
@@ -74,18 +75,16 @@ def pair_errors(p: dict, gt: np.ndarray, T: np.ndarray) -> tuple[float, float]:
 
 
 def fit(X: np.ndarray, y: np.ndarray, w: np.ndarray, l2: float = 1e-2):
-    """Weighted, L2-regularised logistic regression by Newton's method; returns the probability."""
-    mu, sd = X.mean(0), X.std(0) + 1e-9
-    design = lambda X: np.c_[(X - mu) / sd, np.ones(len(X))]  # noqa: E731
-    Z, b, w = design(X), np.zeros(X.shape[1] + 1), w / w.mean()
-    for _ in range(100):
-        p = 1 / (1 + np.exp(-Z @ b))
-        step = np.linalg.solve((Z * (w * p * (1 - p))[:, None]).T @ Z + l2 * np.eye(len(b)),
-                               Z.T @ (w * (p - y)) + l2 * np.r_[b[:-1], 0])
-        b -= step
-        if np.abs(step).max() < 1e-10:
-            break
-    return (lambda X: 1 / (1 + np.exp(-design(X) @ b))), b
+    """Weighted, L2-regularised logistic regression (scikit-learn) on standardised features;
+    returns the probability and the coefficients (intercept last)."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    model = make_pipeline(StandardScaler(), LogisticRegression(C=1 / l2, max_iter=1000, tol=1e-10))
+    model.fit(X, y, logisticregression__sample_weight=w / w.mean())
+    lr = model[-1]
+    return (lambda X: model.predict_proba(X)[:, 1]), np.r_[lr.coef_[0], lr.intercept_]
 
 
 def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:

@@ -659,6 +659,6 @@ done
 "$D3LVO" demo --out "$OUT/demo"
 # a learned choice between the weighted and the classical pose (a logistic regression on the
 # records above), fitted on the validation drives and scored on the held-out ones
-# (docs/model-card.md, "A learned choice between the two poses")
+# (docs/model-card.md, "A learned choice between the two poses"; pip install -e '.[analysis]')
 .venv/bin/python scripts/learned_choice.py --cache "$OUT/selcache" --fit "$OUT"/data/val_static* "$OUT"/data/val_traffic* \
   --score "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/demo_909 "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
