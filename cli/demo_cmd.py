@@ -91,13 +91,13 @@ def demo_command(
         _render(out_dir / d.name, d)
 
     sc = SessionConfig(backend="auto").resolved()  # OpenVINO where installed: the faster engine here
-    # opened once for every drive and the real frames: OpenVINO compiles (or loads) each stage once
-    model = StageModel(model_dir, sc)
     engine = {"onnxruntime": "ONNX Runtime", "openvino": "OpenVINO"}[sc.backend]
     console.print(lead("2/3", "bold", f" D3LVO ({engine}, {'bundled model' if onnx is None else model_dir}) and, "
                                       "beside it, its classical mode (--method direct) on "
                                       + (" and ".join(d.label for d in drives)) + (" drive" if len(drives) == 1 else " drives")),
                   highlight=False)
+    # opened once for every drive and the real frames: OpenVINO compiles (or loads) each stage once
+    model = StageModel(model_dir, sc)
     reports, first_summary = {}, None
     every = max(1, min(VIZ_EVERY, frames // 4))  # a few pictures of a short drive too
     for d in drives:

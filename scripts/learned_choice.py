@@ -16,11 +16,12 @@ ships (ships or p > th, ships and p > th); picks the rule by the criterion the s
 were chosen by (static drives' t_rel summed at most the classical mode's, higher on at most 4, then
 the largest smallest cut on the traffic drives); then scores, on the `--score` drives, what ships,
 the rule picked, the weighted pose always, and a per-pair oracle (the pose closer to the ground
-truth, by the same error): the most any choice between these two poses could give.
+truth on each pair, by the same error): what a choice that knew each pair's errors would keep,
+not a bound on t_rel (drift adds up over pairs, so a drive can score better with other picks).
 
 Reads the per-pair records of `scripts/selection_rules.py --quick --cache DIR` (the bundled
 checkpoint's), recording those that are missing (torch, one thread, about a minute per drive).
-Needs the `[analysis]` extra (scikit-learn).
+Needs the `[train]` (torch) and `[analysis]` (scikit-learn) extras.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from selection_rules import Drive, cached_pairs, score  # noqa: E402
 
 from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
 from d3lvo_deploy.geometry import change_frame, rotation_angle_precise  # noqa: E402
+from d3lvo_deploy.manifest import load_manifest  # noqa: E402
 from models.checkpoint import build_model, load_checkpoint  # noqa: E402
 from models.point_solver import NO_EVIDENCE  # noqa: E402
 
@@ -59,10 +61,19 @@ def features(p: dict) -> list[float]:
             p["share"], scan, log_ratio(p, "scan_all")[0], judged, float(np.clip(p["significance"], -20, 20)) / 5]
 
 
-def ships(p: dict) -> bool:
-    """The bundled graph's choice (pt_select 0.003, pt_select_rotation 0.05, pt_select_share 0.7, pt_select_scan_pass 0.7)."""
-    scan, judged = log_ratio(p, "scan")
-    return (p["gain"] > 0.003 and p["rotation"] > 0.05 and p["share"] <= 0.7) or bool(judged and np.exp(scan) < 0.7)
+def shipped_rule(config: dict):
+    """The bundled graph's choice with its own thresholds (`pt_select`, `pt_select_rotation`,
+    `pt_select_share`, `pt_select_scan_pass`, read from its manifest): the photometric test under
+    the cap on the distrusted share, or the scan's pass."""
+    gain, rotation = config["pt_select"], config["pt_select_rotation"]
+    share, scan_pass = config["pt_select_share"], config["pt_select_scan_pass"]
+
+    def ships(p: dict) -> bool:
+        scan, judged = log_ratio(p, "scan")
+        return ((p["gain"] > gain and p["rotation"] > rotation and p["share"] <= share)
+                or bool(judged and np.exp(scan) < scan_pass))
+
+    return ships
 
 
 def pair_errors(p: dict, gt: np.ndarray, T: np.ndarray) -> tuple[float, float]:
@@ -90,6 +101,7 @@ def fit(X: np.ndarray, y: np.ndarray, w: np.ndarray, l2: float = 1e-2):
 def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
     torch.set_num_threads(1)
     ckpt = bundled_model_dir() / "default.pt"
+    ships = shipped_rule(load_manifest(bundled_model_dir())["model_config"])
     key = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:12]
     model = None
     pairs, info, labels = {}, {}, {}
@@ -151,18 +163,17 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    try:
-        cache = Path(args[args.index("--cache") + 1])
-        f, s = args.index("--fit"), args.index("--score")
-    except (ValueError, IndexError):
-        sys.exit(__doc__)
-    fit_drives, score_drives = (args[f + 1 : s], args[s + 1 :]) if f < s else (args[f + 1 :], args[s + 1 : f])
-    fit_drives = [a for a in fit_drives if a != "--cache" and a != str(cache)]
-    score_drives = [a for a in score_drives if a != "--cache" and a != str(cache)]
-    for d in fit_drives + score_drives:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cache", type=Path, required=True, help="selection_rules.py's record folder")
+    parser.add_argument("--fit", nargs="+", required=True, help="drives the regression is fitted and its rule picked on")
+    parser.add_argument("--score", nargs="+", required=True, help="drives the rules are scored on once")
+    args = parser.parse_args()
+    for d in args.fit + args.score:
         if not (Path(d) / "poses.txt").is_file():
             sys.exit(f"{d}: no poses.txt, the ground truth this script scores against")
-    if not fit_drives or not score_drives:
-        sys.exit("--fit and --score each need drives")
-    main(cache, fit_drives, score_drives)
+    both = {Path(d).resolve() for d in args.fit} & {Path(d).resolve() for d in args.score}
+    if both:
+        sys.exit(f"{sorted(both)[0]}: in both --fit and --score; a drive fitted on scores nothing held out")
+    main(args.cache, args.fit, args.score)

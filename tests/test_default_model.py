@@ -38,14 +38,14 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
 
     from d3lvo_deploy import lidar_reference
     from d3lvo_deploy.bundled import find_real_frames
+    from d3lvo_deploy.onnx_model import StageModel
     from d3lvo_deploy.poses import read_poses
     from d3lvo_deploy.sequence import KittiSequence
 
-    from d3lvo_deploy.onnx_model import StageModel
-
     opened = []  # each model the demo opens: one for both drives and the real frames (one compile per stage)
     init = StageModel.__init__
-    monkeypatch.setattr(StageModel, "__init__", lambda self, *a, **k: (opened.append(a[0]), init(self, *a, **k))[1])
+    monkeypatch.setattr(StageModel, "__init__",
+                        lambda self, *a, **k: (opened.append((a or [k.get("model_dir")])[0]), init(self, *a, **k))[1])
     demo = tmp_path / "demo"
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12"])
     assert r.exit_code == 0, r.output
@@ -76,6 +76,7 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
     monkeypatch.setattr(lidar_reference, "have_kiss_icp", lambda: False)
     r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "12", "--no-traffic"])
     assert r.exit_code == 0, r.output
+    assert len(opened) == 2, opened
     assert "reusing the held-out static" in r.output and "traffic" not in r.output.split("3/3")[0].split("2/3")[1]
     assert not (demo / "synthetic_heldout_viz").exists()
     if real is not None:
