@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from selection_rules import Drive, cached_pairs, score  # noqa: E402
+from selection_rules import GAINS, Drive, cached_pairs, score  # noqa: E402
 
 from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
 from d3lvo_deploy.geometry import change_frame, rotation_angle_precise  # noqa: E402
@@ -111,7 +111,7 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
             from dataclasses import replace
 
             ck = load_checkpoint(ckpt)
-            ck["config"] = replace(ck["config"], pt_select=0.003, pt_select_rotation=0.0, pt_select_share=1.0)
+            ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0, pt_select_share=1.0)
             model = build_model(ck)
         pairs[d] = cached_pairs(model, d, True, cache, key)
         info[d] = Drive.open(d)
