@@ -26,7 +26,6 @@ Needs the `[train]` (torch) and `[analysis]` (scikit-learn) extras.
 
 from __future__ import annotations
 
-import hashlib
 import sys
 from pathlib import Path
 
@@ -34,12 +33,11 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from selection_rules import GAINS, Drive, cached_pairs, score  # noqa: E402
+from selection_rules import Drive, recorded_pairs, rule_scores, score  # noqa: E402
 
 from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
 from d3lvo_deploy.geometry import change_frame, rotation_angle_precise  # noqa: E402
 from d3lvo_deploy.manifest import load_manifest  # noqa: E402
-from models.checkpoint import build_model, load_checkpoint  # noqa: E402
 from models.point_solver import NO_EVIDENCE  # noqa: E402
 
 LEVER = 0.1  # m of translation error per degree of rotation error, in a pair's label
@@ -100,24 +98,12 @@ def fit(X: np.ndarray, y: np.ndarray, w: np.ndarray, l2: float = 1e-2):
 
 def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
     torch.set_num_threads(1)
-    ckpt = bundled_model_dir() / "default.pt"
     ships = shipped_rule(load_manifest(bundled_model_dir())["model_config"])
-    key = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:12]
-    model = None
-    pairs, info, labels = {}, {}, {}
-    for d in fit_drives + score_drives:
-        path = cache / f"{Path(d).resolve().name}-{key}-quick.pkl"
-        if not path.is_file() and model is None:  # as selection_rules.py records them: both solves on every pair
-            from dataclasses import replace
-
-            ck = load_checkpoint(ckpt)
-            ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0, pt_select_share=1.0)
-            model = build_model(ck)
-        pairs[d] = cached_pairs(model, d, True, cache, key)
+    pairs = recorded_pairs(fit_drives + score_drives, bundled_model_dir() / "default.pt", True, cache)
+    info, labels = {}, {}
+    for d in pairs:
         info[d] = Drive.open(d)
         g = info[d].gt.poses
-        for p in pairs[d]:
-            p["rotation"] = float(np.degrees(rotation_angle_precise(p["C"][:3, :3].T @ p["W"][:3, :3])))
         labels[d] = [pair_errors(p, np.linalg.inv(g[i]) @ g[i + 1], info[d].T_cam0_cam2) for i, p in enumerate(pairs[d])]
     X = np.array([features(p) for d in fit_drives for p in pairs[d]])
     errs = np.array([e for d in fit_drives for e in labels[d]])
@@ -125,13 +111,14 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
     names = "gain rotation translation share scan scan_all judged significance intercept".split()
     print(f"fitted on {len(X)} pairs of {len(fit_drives)} drives; weighted pose the closer on {np.mean(errs[:, 0] < errs[:, 1]):.1%}")
     print("coefficients (standardised features): " + ", ".join(f"{n} {c:+.3f}" for n, c in zip(names, coef)))
-    P = {d: prob(np.array([features(p) for p in pairs[d]])) for d in pairs}
+    for d in pairs:  # each pair's fitted probability, and whether its weighted pose is the closer
+        for p, q, (w, c) in zip(pairs[d], prob(np.array([features(p) for p in pairs[d]])), labels[d]):
+            p["p"], p["closer"] = float(q), w < c
     classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in pairs}
 
     def row(name: str, drives: list[str], keep) -> tuple[float, int, float, dict]:
-        sc = {d: score(info[d], [p["W"] if keep(d, i) else p["C"] for i, p in enumerate(pairs[d])])[0] for d in drives}
-        static = [sc[d] - classical[d] for d in drives if not info[d].traffic]
-        cut = {d: 1 - sc[d] / classical[d] for d in drives if info[d].traffic}
+        _, static, cut = rule_scores(info, pairs, classical, keep, drives)
+        static = list(static.values())
         text = f"{name:30s} static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, " \
                f"lower on {sum(x < -1e-4 for x in static)}"
         if cut:
@@ -139,11 +126,11 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
         print(text, flush=True)
         return sum(static), sum(x > 1e-4 for x in static), min(cut.values(), default=0.0), cut
 
-    shipped = lambda d, i: ships(pairs[d][i])  # noqa: E731
+    shipped = lambda ps, i: ships(ps[i])  # noqa: E731
     rules = {"ships": shipped}
-    rules.update({f"p > {t}": (lambda d, i, t=t: P[d][i] > t) for t in THRESHOLDS})
-    rules.update({f"ships or p > {t}": (lambda d, i, t=t: shipped(d, i) or P[d][i] > t) for t in BESIDE})
-    rules.update({f"ships and p > {t}": (lambda d, i, t=t: shipped(d, i) and P[d][i] > t) for t in BESIDE})
+    rules.update({f"p > {t}": (lambda ps, i, t=t: ps[i]["p"] > t) for t in THRESHOLDS})
+    rules.update({f"ships or p > {t}": (lambda ps, i, t=t: shipped(ps, i) or ps[i]["p"] > t) for t in BESIDE})
+    rules.update({f"ships and p > {t}": (lambda ps, i, t=t: shipped(ps, i) and ps[i]["p"] > t) for t in BESIDE})
     print(f"on the {len(fit_drives)} drives fitted on:")
     fitted = {name: row(name, fit_drives, keep) for name, keep in rules.items()}
     eligible = {n: r for n, r in fitted.items() if n != "ships" and r[0] <= 0 and r[1] <= 4}
@@ -154,10 +141,9 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
     print(f"picked: {best} (smallest traffic cut {100 * eligible[best][2]:.1f} % against {100 * fitted['ships'][2]:.1f} % "
           "for what ships)")
     print(f"on the {len(score_drives)} drives scored:")
-    oracle = {d: [w < c for w, c in labels[d]] for d in score_drives}
     cuts = {name: row(name, score_drives, keep)[3] for name, keep in (
-        ("ships", shipped), (best, rules[best]), ("weighted always", lambda d, i: True),
-        ("oracle per pair", lambda d, i: oracle[d][i]))}
+        ("ships", shipped), (best, rules[best]), ("weighted always", lambda ps, i: True),
+        ("oracle per pair", lambda ps, i: ps[i]["closer"]))}
     print("traffic cut % per drive (ships / picked / weighted always / oracle): " + "  ".join(
         f"{Path(d).name}: " + "/".join(f"{100 * c[d]:.0f}" for c in cuts.values()) for d in cuts["ships"]))
 

@@ -169,17 +169,54 @@ def score(drive: Drive, relatives: list[np.ndarray]) -> tuple[float, str]:
 
 def cached_pairs(model, drive: str, quick: bool, cache: Path | None, key: str) -> list[dict]:
     """`record_pairs`, read from `cache` where this checkpoint's record of the drive is kept."""
-    if cache is None:
-        return record_pairs(model, drive, quick)
-    path = cache / f"{Path(drive).resolve().name}-{key}{'-quick' if quick else ''}.pkl"
-    if path.is_file():
+    path = None if cache is None else record_path(cache, drive, key, quick)
+    if path is not None and path.is_file():
         return pickle.loads(path.read_bytes())
     pairs = record_pairs(model, drive, quick)
-    cache.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".part")
-    tmp.write_bytes(pickle.dumps(pairs))
-    tmp.replace(path)
+    if path is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".part")
+        tmp.write_bytes(pickle.dumps(pairs))
+        tmp.replace(path)
     return pairs
+
+
+def record_path(cache: Path, drive: str, key: str, quick: bool) -> Path:
+    return cache / f"{Path(drive).resolve().name}-{key}{'-quick' if quick else ''}.pkl"
+
+
+def recording_model(checkpoint: Path):
+    """The checkpoint with both solves kept on every pair (what is kept is chosen rule by rule)."""
+    ck = load_checkpoint(checkpoint)
+    ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0, pt_select_share=1.0)
+    return build_model(ck)
+
+
+def recorded_pairs(drives: list[str], checkpoint: Path, quick: bool = False,
+                   cache: Path | None = None) -> dict[str, list[dict]]:
+    """Per drive, its pairs' records (`cached_pairs`; the network built only where one is missing),
+    each with the rotation between its weighted and classical pose (degrees)."""
+    key = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:12]
+    model, pairs = None, {}
+    for drive in drives:
+        if model is None and (cache is None or not record_path(cache, drive, key, quick).is_file()):
+            model = recording_model(checkpoint)
+        pairs[drive] = cached_pairs(model, drive, quick, cache, key)
+        for p in pairs[drive]:
+            D = p["C"][:3, :3].T @ p["W"][:3, :3]
+            p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
+    return pairs
+
+
+def rule_scores(info: dict[str, Drive], pairs: dict[str, list[dict]], classical: dict[str, float], keep,
+                drives: list[str]) -> tuple[dict, dict, dict]:
+    """A rule's (t_rel or ATE, unit) per drive, and against the classical pose kept always: the
+    static drives' differences and the traffic drives' cuts."""
+    scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
+              for d in drives}
+    static = {d: scores[d][0] - classical[d] for d in drives if not info[d].traffic}
+    cut = {d: 1 - scores[d][0] / classical[d] for d in drives if info[d].traffic}
+    return scores, static, cut
 
 
 def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path | None = None) -> None:
@@ -187,17 +224,8 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
         if not (Path(drive) / "poses.txt").is_file():
             sys.exit(f"{drive}: no poses.txt, the ground truth this script scores against")
     torch.set_num_threads(1)
-    ck = load_checkpoint(checkpoint)
-    key = hashlib.sha256(checkpoint.read_bytes()).hexdigest()[:12]
-    # both solves, every pair (what is kept is chosen below, rule by rule)
-    ck["config"] = replace(ck["config"], pt_select=min(GAINS), pt_select_rotation=0.0, pt_select_share=1.0)
-    model = build_model(ck)
-    pairs = {}
+    pairs = recorded_pairs(drives, checkpoint, quick, cache)
     for drive in drives:
-        pairs[drive] = cached_pairs(model, drive, quick, cache, key)
-        for p in pairs[drive]:
-            D = p["C"][:3, :3].T @ p["W"][:3, :3]
-            p["rotation"] = float(np.degrees(rotation_angle_precise(D)))
         print(f"recorded {Path(drive).name}: {len(pairs[drive])} pairs", flush=True)
     info = {d: Drive.open(d) for d in drives}
     classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in drives}
@@ -267,10 +295,8 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
                   for g, r in itertools.product(GAINS, ROTATIONS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
-        scores = {d: score(info[d], [p["W"] if keep(pairs[d], i) else p["C"] for i, p in enumerate(pairs[d])])
-                  for d in drives}
-        static = [scores[d][0] - classical[d] for d in drives if not info[d].traffic]
-        cut = [1 - scores[d][0] / classical[d] for d in drives if info[d].traffic]
+        scores, static, cut = rule_scores(info, pairs, classical, keep, drives)
+        static, cut = list(static.values()), list(cut.values())
         kept = [keep(pairs[d], i) for d in drives if not info[d].traffic for i in range(len(pairs[d]))]
         summary = f"static: sum {sum(static):+.4f}, higher on {sum(x > 1e-4 for x in static)}, lower on " \
                   f"{sum(x < -1e-4 for x in static)}, weighted kept on {sum(kept)} of {len(kept)} pairs" \
