@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .cpu import bf16_kernels, cpu_info
 from .errors import D3LVOInputError
 
 BACKENDS = ("onnxruntime", "openvino")
@@ -186,6 +187,15 @@ class SessionConfig:
             raise D3LVOInputError(None, f"--ov-precision must be one of {', '.join(OV_PRECISIONS)}, "
                                         f"not {self.ov_precision!r}")
         if self.backend == "openvino":
+            if self.ov_precision == "bf16":
+                info, held = cpu_info(), os.environ.get("ONEDNN_MAX_CPU_ISA")
+                if not bf16_kernels(info.isa):
+                    raise D3LVOInputError(None, "--ov-precision bf16 needs a CPU with AVX512-BF16 or AMX-BF16 "
+                                                f"(this one: {info.line()}): use f32, the default")
+                if not bf16_kernels(info.isa, held):
+                    raise D3LVOInputError(None, f"--ov-precision bf16 needs oneDNN's AVX-512 kernels, which "
+                                                f"ONEDNN_MAX_CPU_ISA={held} holds off: use f32, the default, or "
+                                                "unset the variable")
             if self.provider != "cpu":
                 raise D3LVOInputError(None, "--provider is onnxruntime's; the openvino backend runs on the CPU")
             if self.profile_dir:
@@ -347,6 +357,15 @@ class OrtSession:
         return self.sess.end_profiling()
 
 
+def openvino_reason(e: Exception) -> str:
+    """The line of an OpenVINO error that says what failed: its text opens with lines naming the
+    source files it passed through ("Exception from src/inference/src/cpp/core.cpp:132:") and
+    ends with the reason."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    said = [ln for ln in lines if not ln.startswith("Exception from ")]
+    return ((said or lines or [type(e).__name__])[-1])[:200]
+
+
 class OpenVinoSession:
     """One OpenVINO compiled model on the CPU, latency mode (one stream: frames come one by one)."""
 
@@ -372,7 +391,7 @@ class OpenVinoSession:
         try:
             self.compiled = OpenVinoSession._core.compile_model(str(path), "CPU", config)
         except Exception as e:  # OpenVINO raises RuntimeError with a long multi-line text
-            raise D3LVOInputError(path, f"OpenVINO cannot load it ({str(e).splitlines()[0][:200]})") from None
+            raise D3LVOInputError(path, f"OpenVINO cannot load it ({openvino_reason(e)})") from None
         if cache is not None and expected and expected.get("sha256"):
             try:
                 (cache / _marker(sc, stage, expected["sha256"])).touch()

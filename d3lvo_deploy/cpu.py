@@ -44,6 +44,19 @@ def cpu_info(cpuinfo_path: str = "/proc/cpuinfo") -> CpuInfo:
                    isa=tuple(name for flag, name in ISA_FLAGS if flag in flags))
 
 
+# oneDNN's ISA caps below AVX-512 (`ONEDNN_MAX_CPU_ISA`, which OpenVINO's CPU plugin honours):
+# under them OpenVINO has no bf16 kernels, though the CPU's flags list them
+_BELOW_AVX512 = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2")
+BF16_ISA = ("AVX512-BF16", "AMX-BF16")
+
+
+def bf16_kernels(isa: tuple[str, ...], max_isa: str | None = None) -> bool:
+    """Whether OpenVINO can run bf16 here: the CPU has AVX512-BF16 or AMX-BF16 and oneDNN is not
+    held below AVX-512 (`max_isa`, ONEDNN_MAX_CPU_ISA). Elsewhere OpenVINO either emulates bf16,
+    slower than f32, or finds no kernel for some ops and cannot compile the graph."""
+    return bool(set(BF16_ISA) & set(isa)) and (max_isa or "").strip().upper() not in _BELOW_AVX512
+
+
 def gemm_peak_gflops(n: int = 1024, repeats: int = 8) -> float:
     """Best-of single-precision GEMM rate of numpy's BLAS (all cores, as the bench's threads on
     a 2-core vehicle computer): the ceiling a convolution-bound graph could approach."""

@@ -10,8 +10,9 @@ from onnx import TensorProto, helper
 from typer.testing import CliRunner
 
 from cli.main import app
-from d3lvo_deploy.backends import SessionConfig
-from d3lvo_deploy.cpu import cpu_info
+from d3lvo_deploy import backends
+from d3lvo_deploy.backends import SessionConfig, openvino_reason
+from d3lvo_deploy.cpu import CpuInfo, bf16_kernels, cpu_info
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine
 from d3lvo_deploy.onnx_model import StageModel
@@ -33,6 +34,41 @@ def test_cpu_info_reads_model_and_vector_extensions(tmp_path):
     assert info.isa == ("AVX2", "FMA", "AVX-512", "AVX512-VNNI", "AMX-BF16")  # first core's flags, known names only
     f.write_text("model name\t: Old CPU\nflags\t\t: fpu sse2\n")
     assert cpu_info(str(f)).isa == () and "no AVX2" in cpu_info(str(f)).line()
+
+
+def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_avx512():
+    assert bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-BF16"))
+    assert bf16_kernels(("AVX2", "AMX-BF16"), "ALL") and bf16_kernels(("AMX-BF16",), "avx512_core_amx")
+    assert not bf16_kernels(("AVX2", "FMA"))  # an AVX2-only CPU
+    assert not bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-VNNI"))  # AVX-512 without bf16: emulated, slow
+    assert not bf16_kernels(("AVX2", "AVX-512", "AVX512-BF16"), "AVX2")  # oneDNN held to its AVX2 kernels
+    assert not bf16_kernels(("AVX512-BF16",), " avx2_vnni ")
+
+
+def test_bf16_on_a_cpu_without_it_is_one_clear_error(monkeypatch):
+    """OpenVINO asked for bf16 where it has no bf16 kernels fails to compile some ops (Softmax,
+    AveragePool) or emulates them: the run says so before any graph is opened."""
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.setattr(backends, "cpu_info", lambda: CpuInfo("Example AVX2 CPU", 2, ("AVX2", "FMA")))
+    with pytest.raises(D3LVOInputError, match=r"bf16 needs a CPU with AVX512-BF16 or AMX-BF16 \(this one: "
+                                              r"Example AVX2 CPU, 2 cores, AVX2 FMA\): use f32"):
+        SessionConfig(backend="openvino", ov_precision="bf16").check()
+    SessionConfig(backend="openvino").check()  # f32 runs anywhere
+    monkeypatch.setattr(backends, "cpu_info", lambda: CpuInfo("Example CPU", 2, ("AVX2", "AVX-512", "AVX512-BF16")))
+    SessionConfig(backend="openvino", ov_precision="bf16").check()
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    with pytest.raises(D3LVOInputError, match="AVX-512 kernels, which ONEDNN_MAX_CPU_ISA=AVX2 holds off"):
+        SessionConfig(backend="openvino", ov_precision="bf16").check()
+
+
+def test_openvino_errors_name_the_reason_not_the_source_file():
+    text = ("Exception from src/inference/src/cpp/core.cpp:132:\nException from src/inference/src/dev/plugin.cpp:59:\n"
+            "Check '!getSupportedPrimitiveDescriptors().empty()' failed at src/plugins/intel_cpu/src/node.cpp:345:\n"
+            "Supported primitive descriptors list is empty for node: /AveragePool type: Pooling\n\n\n")
+    assert openvino_reason(RuntimeError(text)) == "Supported primitive descriptors list is empty for node: /AveragePool type: Pooling"
+    assert openvino_reason(RuntimeError("Exception from src/frontends/onnx/frontend/src/frontend.cpp:1:")) == \
+        "Exception from src/frontends/onnx/frontend/src/frontend.cpp:1:"  # nothing else said: that line
+    assert openvino_reason(RuntimeError("")) == "RuntimeError"
 
 
 def test_flop_count_by_hand(tmp_path):
@@ -186,15 +222,18 @@ def test_auto_picks_openvino_where_installed(small_model):
 def test_bf16_leaves_the_solver_in_f32(small_model):
     """--ov-precision bf16 is for the convolution stages: the Gauss-Newton solver stays f32 (in
     bf16 it lost held-out accuracy, README)."""
+    import os
+
     _, onnx_dir = small_model
-    m = StageModel(onnx_dir, SessionConfig(backend="openvino", ov_precision="bf16"))
+    sc = SessionConfig(backend="openvino", ov_precision="bf16")
+    if not bf16_kernels(cpu_info().isa, os.environ.get("ONEDNN_MAX_CPU_ISA")):  # refused here
+        with pytest.raises(D3LVOInputError, match="--ov-precision bf16 needs"):
+            StageModel(onnx_dir, sc)
+        return
+    m = StageModel(onnx_dir, sc)
     hint = lambda stage: str(m.sessions[stage].compiled.get_property("INFERENCE_PRECISION_HINT"))  # noqa: E731
     assert "float32" in hint("flowpose")
-    # where the CPU has bf16 (AVX512-BF16 / AMX) the convolution stages take it
-    from d3lvo_deploy.cpu import cpu_info
-
-    if {"AVX512-BF16", "AMX-BF16"} & set(cpu_info().isa):
-        assert "bfloat16" in hint("encoder") and "bfloat16" in hint("completion")
+    assert "bfloat16" in hint("encoder") and "bfloat16" in hint("completion")
 
 
 def test_openvino_compiled_models_are_cached_per_engine_and_cpu(small_model, tmp_path, monkeypatch):
