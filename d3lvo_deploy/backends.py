@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cpu import bf16_kernels, cpu_info
+from .cpu import bf16_kernels, cpu_info, isa_cap
 from .errors import D3LVOInputError
 
 BACKENDS = ("onnxruntime", "openvino")
@@ -188,14 +188,14 @@ class SessionConfig:
                                         f"not {self.ov_precision!r}")
         if self.backend == "openvino":
             if self.ov_precision == "bf16":
-                info, held = cpu_info(), os.environ.get("ONEDNN_MAX_CPU_ISA")
+                info, cap = cpu_info(), isa_cap()
                 if not bf16_kernels(info.isa):
                     raise D3LVOInputError(None, "--ov-precision bf16 needs a CPU with AVX512-BF16 or AMX-BF16 "
                                                 f"(this one: {info.line()}): use f32, the default")
-                if not bf16_kernels(info.isa, held):
-                    raise D3LVOInputError(None, f"--ov-precision bf16 needs oneDNN's AVX-512 kernels, which "
-                                                f"ONEDNN_MAX_CPU_ISA={held} holds off: use f32, the default, or "
-                                                "unset the variable")
+                if cap is not None and not bf16_kernels(info.isa, cap[1]):
+                    raise D3LVOInputError(None, f"--ov-precision bf16 needs oneDNN's bf16 kernels, which "
+                                                f"{cap[0]}={cap[1]} holds off: use f32, the default, or unset "
+                                                "the variable")
             if self.provider != "cpu":
                 raise D3LVOInputError(None, "--provider is onnxruntime's; the openvino backend runs on the CPU")
             if self.profile_dir:

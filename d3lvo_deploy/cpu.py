@@ -44,17 +44,26 @@ def cpu_info(cpuinfo_path: str = "/proc/cpuinfo") -> CpuInfo:
                    isa=tuple(name for flag, name in ISA_FLAGS if flag in flags))
 
 
-# oneDNN's ISA caps below AVX-512 (`ONEDNN_MAX_CPU_ISA`, which OpenVINO's CPU plugin honours):
-# under them OpenVINO has no bf16 kernels, though the CPU's flags list them
-_BELOW_AVX512 = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2")
+# oneDNN's ISA caps below its bf16 kernels (`ONEDNN_MAX_CPU_ISA`, or the older name
+# `DNNL_MAX_CPU_ISA`; OpenVINO's CPU plugin honours them): under them OpenVINO has no native bf16
+# kernel, though the CPU's flags list the extension
+_BELOW_BF16 = ("SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2", "AVX512_CORE", "AVX512_CORE_VNNI")
 BF16_ISA = ("AVX512-BF16", "AMX-BF16")
+ISA_CAP_VARIABLES = ("ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA")
+
+
+def isa_cap(env: dict | None = None) -> tuple[str, str] | None:
+    """(variable, value) of the oneDNN ISA cap set in `env` (default os.environ), if any."""
+    env = os.environ if env is None else env
+    return next(((k, env[k]) for k in ISA_CAP_VARIABLES if env.get(k, "").strip()), None)
 
 
 def bf16_kernels(isa: tuple[str, ...], max_isa: str | None = None) -> bool:
-    """Whether OpenVINO can run bf16 here: the CPU has AVX512-BF16 or AMX-BF16 and oneDNN is not
-    held below AVX-512 (`max_isa`, ONEDNN_MAX_CPU_ISA). Elsewhere OpenVINO either emulates bf16,
-    slower than f32, or finds no kernel for some ops and cannot compile the graph."""
-    return bool(set(BF16_ISA) & set(isa)) and (max_isa or "").strip().upper() not in _BELOW_AVX512
+    """Whether OpenVINO has native bf16 kernels here: the CPU has AVX512-BF16 or AMX-BF16 and
+    oneDNN is not held below them (`max_isa`, the value of `isa_cap`). Held to its AVX2 kernels,
+    OpenVINO finds no bf16 kernel for some ops and cannot compile the graph
+    (docs/performance.md)."""
+    return bool(set(BF16_ISA) & set(isa)) and (max_isa or "").strip().upper() not in _BELOW_BF16
 
 
 def gemm_peak_gflops(n: int = 1024, repeats: int = 8) -> float:

@@ -326,14 +326,18 @@ MUTATIONS = [
              "np.flatnonzero(ok) if index is None else index[ok], cfg.median_stride)",
              "np.flatnonzero(ok), cfg.median_stride)",
              ("tests/test_point_solver.py::test_scan_gate_is_the_numpy_trackers",)),
-    Mutation("OpenVINO bf16 allowed where oneDNN is held below AVX-512", "d3lvo_deploy/cpu.py",
-             "and (max_isa or \"\").strip().upper() not in _BELOW_AVX512", "",
+    Mutation("OpenVINO bf16 allowed where oneDNN is held below its bf16 kernels", "d3lvo_deploy/cpu.py",
+             "and (max_isa or \"\").strip().upper() not in _BELOW_BF16", "",
              ("tests/test_backends.py::test_bf16_kernels_need_the_extension_and_onednn_not_held_below_avx512",
               "tests/test_backends.py::test_bf16_on_a_cpu_without_it_is_one_clear_error")),
     Mutation("OpenVINO's load error reports its first line (a source file)", "d3lvo_deploy/backends.py",
              "return ((said or lines or [type(e).__name__])[-1])[:200]",
              "return ((lines or [type(e).__name__])[0])[:200]",
              ("tests/test_backends.py::test_openvino_errors_name_the_reason_not_the_source_file",)),
+    Mutation("OpenVINO's load error quotes the first line of its text", "d3lvo_deploy/backends.py",
+             'f"OpenVINO cannot load it ({openvino_reason(e)})"',
+             'f"OpenVINO cannot load it ({str(e).splitlines()[0][:200]})"',
+             ("tests/test_backends.py::test_an_openvino_load_error_names_the_file_and_the_reason",)),
 ]
 
 

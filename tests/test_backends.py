@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from cli.main import app
 from d3lvo_deploy import backends
 from d3lvo_deploy.backends import SessionConfig, openvino_reason
-from d3lvo_deploy.cpu import CpuInfo, bf16_kernels, cpu_info
+from d3lvo_deploy.cpu import CpuInfo, bf16_kernels, cpu_info, isa_cap
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine
 from d3lvo_deploy.onnx_model import StageModel
@@ -43,12 +43,18 @@ def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_avx512():
     assert not bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-VNNI"))  # AVX-512 without bf16: emulated, slow
     assert not bf16_kernels(("AVX2", "AVX-512", "AVX512-BF16"), "AVX2")  # oneDNN held to its AVX2 kernels
     assert not bf16_kernels(("AVX512-BF16",), " avx2_vnni ")
+    assert not bf16_kernels(("AVX-512", "AVX512-BF16"), "AVX512_CORE")  # below the bf16 kernels: emulated
+    assert bf16_kernels(("AVX-512", "AVX512-BF16"), "AVX512_CORE_BF16")
+    assert isa_cap({"DNNL_MAX_CPU_ISA": "AVX2"}) == ("DNNL_MAX_CPU_ISA", "AVX2")  # oneDNN's older name
+    assert isa_cap({"ONEDNN_MAX_CPU_ISA": "AVX2", "DNNL_MAX_CPU_ISA": "ALL"})[0] == "ONEDNN_MAX_CPU_ISA"
+    assert isa_cap({"ONEDNN_MAX_CPU_ISA": " "}) is None and isa_cap({}) is None
 
 
 def test_bf16_on_a_cpu_without_it_is_one_clear_error(monkeypatch):
     """OpenVINO asked for bf16 where it has no bf16 kernels fails to compile some ops (Softmax,
     AveragePool) or emulates them: the run says so before any graph is opened."""
     monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
     monkeypatch.setattr(backends, "cpu_info", lambda: CpuInfo("Example AVX2 CPU", 2, ("AVX2", "FMA")))
     with pytest.raises(D3LVOInputError, match=r"bf16 needs a CPU with AVX512-BF16 or AMX-BF16 \(this one: "
                                               r"Example AVX2 CPU, 2 cores, AVX2 FMA\): use f32"):
@@ -57,8 +63,31 @@ def test_bf16_on_a_cpu_without_it_is_one_clear_error(monkeypatch):
     monkeypatch.setattr(backends, "cpu_info", lambda: CpuInfo("Example CPU", 2, ("AVX2", "AVX-512", "AVX512-BF16")))
     SessionConfig(backend="openvino", ov_precision="bf16").check()
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
-    with pytest.raises(D3LVOInputError, match="AVX-512 kernels, which ONEDNN_MAX_CPU_ISA=AVX2 holds off"):
+    with pytest.raises(D3LVOInputError, match="bf16 kernels, which ONEDNN_MAX_CPU_ISA=AVX2 holds off"):
         SessionConfig(backend="openvino", ov_precision="bf16").check()
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "ALL")
+    SessionConfig(backend="openvino", ov_precision="bf16").check()
+
+
+def test_an_openvino_load_error_names_the_file_and_the_reason(small_model, monkeypatch):
+    """What `d3lvo run` prints when OpenVINO cannot compile a stage: the file and OpenVINO's reason,
+    not the source file its text opens with."""
+    pytest.importorskip("openvino")
+    import openvino as ov
+
+    def refuse(self, path, *args, **kwargs):
+        raise RuntimeError("Exception from src/inference/src/cpp/core.cpp:132:\n"
+                           "Exception from src/inference/src/dev/plugin.cpp:59:\n"
+                           "Supported primitive descriptors list is empty for node: /encoder/Softmax type: Softmax\n")
+
+    monkeypatch.setattr(ov.Core, "compile_model", refuse)
+    monkeypatch.setattr(backends.OpenVinoSession, "_core", None)
+    _, onnx_dir = small_model
+    with pytest.raises(D3LVOInputError) as e:
+        StageModel(onnx_dir, SessionConfig(backend="openvino"))
+    assert str(e.value).startswith(str(onnx_dir / "completion.onnx"))
+    assert str(e.value).endswith("OpenVINO cannot load it (Supported primitive descriptors list is empty for node: "
+                                 "/encoder/Softmax type: Softmax)")
 
 
 def test_openvino_errors_name_the_reason_not_the_source_file():
@@ -222,11 +251,10 @@ def test_auto_picks_openvino_where_installed(small_model):
 def test_bf16_leaves_the_solver_in_f32(small_model):
     """--ov-precision bf16 is for the convolution stages: the Gauss-Newton solver stays f32 (in
     bf16 it lost held-out accuracy, README)."""
-    import os
-
     _, onnx_dir = small_model
     sc = SessionConfig(backend="openvino", ov_precision="bf16")
-    if not bf16_kernels(cpu_info().isa, os.environ.get("ONEDNN_MAX_CPU_ISA")):  # refused here
+    cap = isa_cap()
+    if not bf16_kernels(cpu_info().isa, cap and cap[1]):  # refused here
         with pytest.raises(D3LVOInputError, match="--ov-precision bf16 needs"):
             StageModel(onnx_dir, sc)
         return
