@@ -328,7 +328,7 @@ MUTATIONS = [
              ("tests/test_point_solver.py::test_scan_gate_is_the_numpy_trackers",)),
     Mutation("OpenVINO bf16 allowed where oneDNN is held below its bf16 kernels", "d3lvo_deploy/cpu.py",
              "and (max_isa or \"\").strip().upper() not in _BELOW_BF16", "",
-             ("tests/test_backends.py::test_bf16_kernels_need_the_extension_and_onednn_not_held_below_avx512",
+             ("tests/test_backends.py::test_bf16_kernels_need_the_extension_and_onednn_not_held_below_them",
               "tests/test_backends.py::test_bf16_on_a_cpu_without_it_is_one_clear_error")),
     Mutation("OpenVINO's load error reports its first line (a source file)", "d3lvo_deploy/backends.py",
              "return ((said or lines or [type(e).__name__])[-1])[:200]",

@@ -36,7 +36,7 @@ def test_cpu_info_reads_model_and_vector_extensions(tmp_path):
     assert cpu_info(str(f)).isa == () and "no AVX2" in cpu_info(str(f)).line()
 
 
-def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_avx512():
+def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_them():
     assert bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-BF16"))
     assert bf16_kernels(("AVX2", "AMX-BF16"), "ALL") and bf16_kernels(("AMX-BF16",), "avx512_core_amx")
     assert not bf16_kernels(("AVX2", "FMA"))  # an AVX2-only CPU
