@@ -204,14 +204,15 @@ class SessionConfig:
             raise D3LVOInputError(None, "--ov-precision applies to --backend openvino only")
 
 
-# "auto" on a short run. Measured with `d3lvo run` on the 20 real frames, bundled model, AMD EPYC
-# (AVX-512), 2 cores, twice: onnxruntime's first pose after 0.9-1.0 s (0.5 s once its optimised
-# graphs are cached); OpenVINO's after 2.0-2.3 s the first time (compiling) and 0.8-0.9 s once
-# cached; per frame OpenVINO then saves ~13 ms (30.4 vs 43.1 and 44.2 vs 59.1 ms, `d3lvo bench
-# --no-torch --backend B`). So OpenVINO pays back after ~30 frames when cached and ~110 when not;
-# auto takes it from about twice these lengths on, onnxruntime below
-AUTO_MIN_FRAMES_CACHED = 60
-AUTO_MIN_FRAMES = 200
+# "auto" on a short run. Measured with `scripts/start_times.py` on a 300-frame synthetic drive
+# (`d3lvo run --end E` on each engine, an empty cache, then with its graphs; bundled model, AMD
+# EPYC with AVX-512, 2 cores; docs/performance.md): OpenVINO, compiling first, finished 200
+# frames as soon as onnxruntime (19.1 against 19.0 s) and 100 frames 3.2 s later; with its
+# compiled graphs cached, 50 frames 1.0 s later and 100 frames 1.1 s sooner. So OpenVINO pays
+# back after about 200 frames when it compiles and 50-100 when cached; auto takes it from about
+# twice these lengths on, onnxruntime below
+AUTO_MIN_FRAMES_CACHED = 150
+AUTO_MIN_FRAMES = 400
 
 
 def choose_engine(sc: SessionConfig, manifest: dict | None, frames: int | None,
