@@ -40,10 +40,10 @@ def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_them():
     assert bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-BF16"))
     assert bf16_kernels(("AVX2", "AMX-BF16"), "ALL") and bf16_kernels(("AMX-BF16",), "avx512_core_amx")
     assert not bf16_kernels(("AVX2", "FMA"))  # an AVX2-only CPU
-    assert not bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-VNNI"))  # AVX-512 without bf16: emulated, slow
+    assert not bf16_kernels(("AVX2", "FMA", "AVX-512", "AVX512-VNNI"))  # AVX-512 without its bf16 extension
     assert not bf16_kernels(("AVX2", "AVX-512", "AVX512-BF16"), "AVX2")  # oneDNN held to its AVX2 kernels
     assert not bf16_kernels(("AVX512-BF16",), " avx2_vnni ")
-    assert not bf16_kernels(("AVX-512", "AVX512-BF16"), "AVX512_CORE")  # below the bf16 kernels: emulated
+    assert not bf16_kernels(("AVX-512", "AVX512-BF16"), "AVX512_CORE")  # held below the bf16 kernels
     assert bf16_kernels(("AVX-512", "AVX512-BF16"), "AVX512_CORE_BF16")
     assert isa_cap({"DNNL_MAX_CPU_ISA": "AVX2"}) == ("DNNL_MAX_CPU_ISA", "AVX2")  # oneDNN's older name
     assert isa_cap({"ONEDNN_MAX_CPU_ISA": "AVX2", "DNNL_MAX_CPU_ISA": "ALL"})[0] == "ONEDNN_MAX_CPU_ISA"
@@ -51,8 +51,8 @@ def test_bf16_kernels_need_the_extension_and_onednn_not_held_below_them():
 
 
 def test_bf16_on_a_cpu_without_it_is_one_clear_error(monkeypatch):
-    """OpenVINO asked for bf16 where it has no bf16 kernels fails to compile some ops (Softmax,
-    AveragePool) or emulates them: the run says so before any graph is opened."""
+    """OpenVINO asked for bf16 where it has no native bf16 kernels (held to its AVX2 ones, it
+    cannot compile the encoder's Softmax): the run says so before any graph is opened."""
     monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
     monkeypatch.setattr(backends, "cpu_info", lambda: CpuInfo("Example AVX2 CPU", 2, ("AVX2", "FMA")))
