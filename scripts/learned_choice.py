@@ -33,7 +33,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from selection_rules import Drive, recorded_pairs, rule_scores, score  # noqa: E402
+from selection_rules import (Drive, photometric_test, recorded_pairs, rule_scores, score,  # noqa: E402
+                             with_cap_or_scan)
 
 from d3lvo_deploy.bundled import bundled_model_dir  # noqa: E402
 from d3lvo_deploy.geometry import change_frame, rotation_angle_precise  # noqa: E402
@@ -63,15 +64,8 @@ def shipped_rule(config: dict):
     """The bundled graph's choice with its own thresholds (`pt_select`, `pt_select_rotation`,
     `pt_select_share`, `pt_select_scan_pass`, read from its manifest): the photometric test under
     the cap on the distrusted share, or the scan's pass."""
-    gain, rotation = config["pt_select"], config["pt_select_rotation"]
-    share, scan_pass = config["pt_select_share"], config["pt_select_scan_pass"]
-
-    def ships(p: dict) -> bool:
-        scan, judged = log_ratio(p, "scan")
-        return ((p["gain"] > gain and p["rotation"] > rotation and p["share"] <= share)
-                or bool(judged and np.exp(scan) < scan_pass))
-
-    return ships
+    return with_cap_or_scan(photometric_test(config["pt_select"], config["pt_select_rotation"]),
+                            config["pt_select_share"], config["pt_select_scan_pass"])
 
 
 def pair_errors(p: dict, gt: np.ndarray, T: np.ndarray) -> tuple[float, float]:
@@ -98,7 +92,7 @@ def fit(X: np.ndarray, y: np.ndarray, w: np.ndarray, l2: float = 1e-2):
 
 def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
     torch.set_num_threads(1)
-    ships = shipped_rule(load_manifest(bundled_model_dir())["model_config"])
+    shipped = shipped_rule(load_manifest(bundled_model_dir())["model_config"])
     pairs = recorded_pairs(fit_drives + score_drives, bundled_model_dir() / "default.pt", True, cache)
     info, labels = {}, {}
     for d in pairs:
@@ -126,7 +120,6 @@ def main(cache: Path, fit_drives: list[str], score_drives: list[str]) -> None:
         print(text, flush=True)
         return sum(static), sum(x > 1e-4 for x in static), min(cut.values(), default=0.0), cut
 
-    shipped = lambda ps, i: ships(ps[i])  # noqa: E731
     rules = {"ships": shipped}
     rules.update({f"p > {t}": (lambda ps, i, t=t: ps[i]["p"] > t) for t in THRESHOLDS})
     rules.update({f"ships or p > {t}": (lambda ps, i, t=t: shipped(ps, i) or ps[i]["p"] > t) for t in BESIDE})

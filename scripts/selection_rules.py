@@ -219,6 +219,27 @@ def rule_scores(info: dict[str, Drive], pairs: dict[str, list[dict]], classical:
     return scores, static, cut
 
 
+def photometric_test(g: float, r: float):
+    """The graph's photometric test as a rule: the consensus gain above `g` and the rotation between
+    the two poses above `r` degrees."""
+    return lambda ps, i: ps[i]["gain"] > g and ps[i]["rotation"] > r
+
+
+def scan_fits(ps, i, n: str, r: float, strict: bool) -> bool | None:
+    """W's scan error at most (below, `strict`) r times C's; None where a pose puts no trusted
+    point on a return (the graph's `NO_EVIDENCE`): there the scan does not judge."""
+    w, c = ps[i][f"{n}_W"], ps[i][f"{n}_C"]
+    if max(w, c) >= NO_EVIDENCE:
+        return None
+    return w < r * c if strict else w <= r * c
+
+
+def with_cap_or_scan(photometric, share: float = 0.7, scan_pass: float = 0.7):
+    """What ships beside a photometric test: the test under the cap on the distrusted share, or
+    frame t's scan's pass (W's scan error below `scan_pass` times C's)."""
+    return lambda ps, i: (photometric(ps, i) and ps[i]["share"] <= share) or bool(scan_fits(ps, i, "scan", scan_pass, True))
+
+
 def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path | None = None) -> None:
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
@@ -230,12 +251,9 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
     info = {d: Drive.open(d) for d in drives}
     classical = {d: score(info[d], [p["C"] for p in pairs[d]])[0] for d in drives}
 
-    def test(g: float, r: float):
-        return lambda ps, i: ps[i]["gain"] > g and ps[i]["rotation"] > r
-
     rules = [("classical always", lambda ps, i: False), ("weighted always", lambda ps, i: True)]
-    rules += [(f"pt_select {g} pt_select_rotation {r}", test(g, r)) for g, r in itertools.product(GAINS, ROTATIONS)]
-    shipped = test(*SHIPPED)
+    rules += [(f"pt_select {g} pt_select_rotation {r}", photometric_test(g, r)) for g, r in itertools.product(GAINS, ROTATIONS)]
+    shipped = photometric_test(*SHIPPED)
     rules += [(f"shipped, distrusted share <= {f}", lambda ps, i, f=f: shipped(ps, i) and ps[i]["share"] <= f)
               for f in SHARES]
     rules.append(("shipped, passed on the last pair too",
@@ -247,28 +265,21 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
                    lambda ps, i, g=g: ps[i]["held_out"] > g and ps[i]["rotation"] > SHIPPED[1]) for g in HELD_OUT]
         rules += [(f"shipped, distrusted against C > {f}",
                    lambda ps, i, f=f: shipped(ps, i) and ps[i]["unexplained"] > f) for f in UNEXPLAINED]
-    def fits(ps, i, n: str, r: float, strict: bool) -> bool | None:
-        """W's scan error at most (below, `strict`) r times C's; None where a pose puts no trusted
-        point on a return (the graph's `NO_EVIDENCE`): there the scan does not judge."""
-        w, c = ps[i][f"{n}_W"], ps[i][f"{n}_C"]
-        if max(w, c) >= NO_EVIDENCE:
-            return None
-        return w < r * c if strict else w <= r * c
 
     has_scan = all("scan_W" in p for ps in pairs.values() for p in ps)  # the checkpoint's graph reads it
     for scan in ("scan", "scan_all") if has_scan else ():
         rules += [(f"shipped, {scan} W <= {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
-                   and fits(ps, i, n, r, False) is not False) for r in SCAN_VETO]
+                   and scan_fits(ps, i, n, r, False) is not False) for r in SCAN_VETO]
         rules += [(f"shipped or {scan} W < {r} C", lambda ps, i, r=r, n=scan: shipped(ps, i)
-                   or bool(fits(ps, i, n, r, True))) for r in SCAN_PASS]
-        rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: bool(fits(ps, i, n, r, True)))
+                   or bool(scan_fits(ps, i, n, r, True))) for r in SCAN_PASS]
+        rules += [(f"{scan} W < {r} C alone", lambda ps, i, r=r, n=scan: bool(scan_fits(ps, i, n, r, True)))
                   for r in SCAN_PASS]
         # the shipped selection (the photometric test, or the scan's pass at 0.7) with a cap on the
         # share of points the network distrusts on the photometric side
         rules += [(f"shipped, share <= {f}, or {scan} W < 0.7 C", lambda ps, i, f=f, n=scan:
-                   (shipped(ps, i) and ps[i]["share"] <= f) or bool(fits(ps, i, n, 0.7, True))) for f in SHARES]
+                   (shipped(ps, i) and ps[i]["share"] <= f) or bool(scan_fits(ps, i, n, 0.7, True))) for f in SHARES]
         rules += [(f"shipped and {scan} W <= {v} C, or W < {r} C", lambda ps, i, v=v, r=r, n=scan:
-                   (shipped(ps, i) and fits(ps, i, n, v, False) is not False) or bool(fits(ps, i, n, r, True)))
+                   (shipped(ps, i) and scan_fits(ps, i, n, v, False) is not False) or bool(scan_fits(ps, i, n, r, True)))
                   for v, r in itertools.product(SCAN_VETO[:2], SCAN_PASS)]
     if has_scan:
         # what ships (the photometric test with the cap at 0.7, or the scan's pass at 0.7), the
@@ -277,12 +288,8 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
         capped = lambda ps, i: shipped(ps, i) and ps[i]["share"] <= 0.7  # noqa: E731
         last = lambda i, k: range(max(0, i - k + 1), i + 1)  # noqa: E731
 
-        def beside(photometric):
-            """What ships beside a photometric test: the test under the cap at 0.7, or the scan's pass at 0.7."""
-            return lambda ps, i: (photometric(ps, i) and ps[i]["share"] <= 0.7) or bool(fits(ps, i, "scan", 0.7, True))
-
         def ships(extra):
-            return beside(lambda ps, i: shipped(ps, i) and extra(ps, i))
+            return with_cap_or_scan(lambda ps, i: shipped(ps, i) and extra(ps, i))
 
         rules += [(f"ships, and passed on {m} of the last {k} pairs", ships(lambda ps, i, k=k, m=m:
                    sum(capped(ps, j) for j in last(i, k)) >= m)) for k, m in RECENT]
@@ -291,7 +298,7 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
         rules += [(f"ships, and its gain above {z} standard errors", ships(lambda ps, i, z=z:
                    ps[i]["significance"] > z)) for z in SIGNIFICANCE]
         # the photometric test's thresholds chosen again with what ships beside it
-        rules += [(f"ships at pt_select {g} pt_select_rotation {r}", beside(test(g, r)))
+        rules += [(f"ships at pt_select {g} pt_select_rotation {r}", with_cap_or_scan(photometric_test(g, r)))
                   for g, r in itertools.product(GAINS, ROTATIONS)]
     print("drives: " + " ".join(Path(d).name for d in drives))
     for name, keep in rules:
