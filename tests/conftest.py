@@ -63,6 +63,24 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> 
     return folder
 
 
+# What each pytest-xdist worker builds before its first test, the two lists about equally long:
+# left to the tests, both workers asked for the point-solver exports at once and one waited ~25 s
+# for the other. Both build before any test has loaded onnxruntime (no test module imports it at
+# import time): once it is loaded, each trace takes longer (docs/export-and-parity.md).
+PREBUILT = {"gw0": ("points_model", "scan_judge_model"),
+            "gw1": ("small_model", "small_synth", "traffic_clip", "turning_drives")}
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _prebuilt(request, _own_graph_cache):
+    """This worker's share of the shared fixtures that the collected tests use (none for a run
+    without workers, or of tests that use none of them)."""
+    used = {name for item in request.session.items for name in getattr(item, "fixturenames", ())}
+    for name in PREBUILT.get(os.environ.get("PYTEST_XDIST_WORKER", ""), ()):
+        if name in used:
+            request.getfixturevalue(name)
+
+
 @pytest.fixture(autouse=True)
 def _seeded():
     """Every test starts from the same torch seed, so that a model a test builds does not depend

@@ -5,7 +5,6 @@ import shutil
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import pytest
 import torch
 import torch.nn.functional as F
@@ -82,6 +81,8 @@ def test_gathered_is_scoped():
 def test_onnxruntime_graph_in_the_export(small_model, tmp_path):
     """The export writes the flow+pose stage twice: GridSample for OpenVINO, Gathers for
     onnxruntime; same inputs and outputs, same results, each engine opens its own."""
+    import onnxruntime as ort  # here, not at import: see `_prebuilt` in conftest.py
+
     _, out = small_model
     m = load_manifest(out)
     st = m["stages"]["flowpose"]
