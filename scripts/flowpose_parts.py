@@ -1,0 +1,130 @@
+"""Where onnxruntime's flow+pose stage loses time to OpenVINO's, part by part, on the same inputs.
+
+    .venv/bin/python scripts/flowpose_parts.py [SEQ] [--onnx DIR] [--rounds 5]
+
+Runs the model folder (default: the bundled model) with `d3lvo run`'s engine choice set to
+onnxruntime over SEQ (default: the 20 real KITTI frames of ../shared/data) and keeps the inputs
+its flow+pose stage was given. Each engine's own flow+pose graph is then cut four ways and every
+cut opened with the runtime's sessions (`d3lvo_deploy.backends`, 2 threads):
+
+- as shipped;
+- without the solver's steps: each Loop's trip count set to 0 (the poses are then wrong; what is
+  timed is everything around the steps);
+- the flow estimator and the confidence alone: the graph up to `flow_l1`, `confidence_l1` and
+  `point_weights`;
+- the flow estimator alone (its three levels and the context net): up to `flow_l1`.
+
+All six sessions take turns, call by call, on every recorded input for `--rounds` rounds, so
+that they share the machine's drift; prints each one's median, and per engine what the solver's
+steps and the point solver's setup around them cost (the differences of the cuts' medians).
+Figures: docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import numpy_helper
+from onnx.utils import Extractor
+
+from d3lvo_deploy.backends import SessionConfig, open_session
+from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
+from d3lvo_deploy.manifest import for_engine, load_manifest
+from d3lvo_deploy.onnx_model import StageModel
+from d3lvo_deploy.pipeline import RunConfig, run_sequence
+from d3lvo_deploy.sequence import KittiSequence
+
+FLOW_OUTPUTS = ("flow_l1", "confidence_l1", "point_weights")
+CUTS = ("as shipped", "without the steps", "flow and confidence", "flow")
+
+
+def recorded_feeds(model_dir: Path, seq: KittiSequence, out: Path) -> tuple[str, list[dict]]:
+    """The flow+pose stage's name and its inputs at every pair of a run on onnxruntime."""
+    feeds: list[dict] = []
+    run = StageModel.run
+
+    def keep(self, stage, inputs):
+        if stage == "flowpose":  # the graph it opens: with the classical solve beside, flowpose_weighted
+            feeds.append((self._graph(stage), {k: np.array(v) for k, v in inputs.items()}))
+        return run(self, stage, inputs)
+
+    StageModel.run = keep
+    try:
+        run_sequence(seq, model_dir, RunConfig(out=out, overwrite=True),
+                     SessionConfig(backend="onnxruntime", threads=2))
+    finally:
+        StageModel.run = run
+    return feeds[0][0], [f for _, f in feeds]
+
+
+def without_steps(model: onnx.ModelProto) -> onnx.ModelProto:
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    m.graph.initializer.append(numpy_helper.from_array(np.array(0, np.int64), "no_trips"))
+    for node in m.graph.node:
+        if node.op_type == "Loop":
+            node.input[0] = "no_trips"
+    return m
+
+
+def cut_at(model: onnx.ModelProto, outputs: tuple[str, ...]) -> onnx.ModelProto:
+    """The part of the graph (its solver's Loops emptied first) that these outputs need."""
+    model = without_steps(model)
+    inputs = [i.name for i in model.graph.input]
+    return Extractor(model).extract_model(inputs, [o for o in outputs if o in {x.name for x in model.graph.output}])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("seq", nargs="?", type=Path, default=None)
+    ap.add_argument("--onnx", type=Path, default=None)
+    ap.add_argument("--rounds", type=int, default=5)
+    a = ap.parse_args()
+    seq_dir = a.seq or find_real_frames()
+    if seq_dir is None:
+        sys.exit("no sequence: pass SEQ (../shared/data is absent)")
+    model_dir = a.onnx or bundled_model_dir()
+    manifest = load_manifest(model_dir)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        stage, feeds = recorded_feeds(model_dir, KittiSequence.open(seq_dir), tmp / "poses.txt")
+        sessions, names = {}, {}
+        for engine in ("onnxruntime", "openvino"):
+            graph = onnx.load(str(model_dir / for_engine(manifest["stages"][stage], engine)["file"]))
+            for cut, m in zip(CUTS, (graph, without_steps(graph), cut_at(graph, FLOW_OUTPUTS),
+                                     cut_at(graph, FLOW_OUTPUTS[:1]))):
+                path = tmp / f"{engine}_{len(sessions)}.onnx"
+                onnx.save(m, str(path))
+                sessions[(engine, cut)] = open_session(path, SessionConfig(backend=engine, threads=2), stage)
+                names[(engine, cut)] = [i.name for i in m.graph.input]
+        # each cut's own inputs (the flow and the confidence read no image, point or pose)
+        fed = {k: [{n: f[n] for n in names[k]} for f in feeds] for k in sessions}
+        for k, s in sessions.items():
+            for f in fed[k][:3]:
+                s.run(f)
+        times: dict = {k: [] for k in sessions}
+        for _ in range(a.rounds):
+            for i in range(len(feeds)):
+                for k, s in sessions.items():
+                    t = time.perf_counter()
+                    s.run(fed[k][i])
+                    times[k].append((time.perf_counter() - t) * 1000)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    print(f"{stage}, {len(feeds)} recorded inputs x {a.rounds} rounds, ms (median)")
+    for (engine, cut), v in med.items():
+        print(f"  {engine:12s} {cut:20s} {v:6.1f}")
+    for engine in ("onnxruntime", "openvino"):
+        shipped, bare, both, flow = (med[(engine, c)] for c in CUTS)
+        print(f"  {engine}: the solver's steps {shipped - bare:.1f}, the point solver's setup {bare - both:.1f}, "
+              f"the confidence {both - flow:.1f}, the flow estimator {flow:.1f}")
+
+
+if __name__ == "__main__":
+    main()
