@@ -14,9 +14,11 @@ cut opened with the runtime's sessions (`d3lvo_deploy.backends`, 2 threads):
   `point_weights`;
 - the flow estimator alone (its three levels and the context net): up to `flow_l1`.
 
-All six sessions take turns, call by call, on every recorded input for `--rounds` rounds, so
+All eight sessions take turns, call by call, on every recorded input for `--rounds` rounds, so
 that they share the machine's drift; prints each one's median, and per engine what the solver's
-steps and the point solver's setup around them cost (the differences of the cuts' medians).
+steps, the point solver's setup around them and the confidence cost (the differences of the
+cuts' medians) and the flow estimator's time. The model must have the point solver (its steps
+are Loops).
 Figures: docs/performance.md.
 """
 
@@ -36,6 +38,7 @@ from onnx.utils import Extractor
 
 from d3lvo_deploy.backends import SessionConfig, open_session
 from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
+from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine, load_manifest
 from d3lvo_deploy.onnx_model import StageModel
 from d3lvo_deploy.pipeline import RunConfig, run_sequence
@@ -47,7 +50,7 @@ CUTS = ("as shipped", "without the steps", "flow and confidence", "flow")
 
 def recorded_feeds(model_dir: Path, seq: KittiSequence, out: Path) -> tuple[str, list[dict]]:
     """The flow+pose stage's name and its inputs at every pair of a run on onnxruntime."""
-    feeds: list[dict] = []
+    feeds: list[tuple[str, dict]] = []
     run = StageModel.run
 
     def keep(self, stage, inputs):
@@ -61,10 +64,15 @@ def recorded_feeds(model_dir: Path, seq: KittiSequence, out: Path) -> tuple[str,
                      SessionConfig(backend="onnxruntime", threads=2))
     finally:
         StageModel.run = run
+    if not feeds:
+        sys.exit(f"{seq.root}: no pair reached the flow+pose stage (fewer than two frames?)")
     return feeds[0][0], [f for _, f in feeds]
 
 
 def without_steps(model: onnx.ModelProto) -> onnx.ModelProto:
+    """The graph with each solver Loop's trip count 0."""
+    if not any(n.op_type == "Loop" for n in model.graph.node):
+        sys.exit("this flow+pose graph has no solver Loops: the script cuts the point solver's graphs")
     m = onnx.ModelProto()
     m.CopyFrom(model)
     m.graph.initializer.append(numpy_helper.from_array(np.array(0, np.int64), "no_trips"))
@@ -77,8 +85,10 @@ def without_steps(model: onnx.ModelProto) -> onnx.ModelProto:
 def cut_at(model: onnx.ModelProto, outputs: tuple[str, ...]) -> onnx.ModelProto:
     """The part of the graph (its solver's Loops emptied first) that these outputs need."""
     model = without_steps(model)
-    inputs = [i.name for i in model.graph.input]
-    return Extractor(model).extract_model(inputs, [o for o in outputs if o in {x.name for x in model.graph.output}])
+    missing = set(outputs) - {x.name for x in model.graph.output}
+    if missing:
+        sys.exit(f"this flow+pose graph has no output {', '.join(sorted(missing))}")
+    return Extractor(model).extract_model([i.name for i in model.graph.input], list(outputs))
 
 
 def main() -> None:
@@ -104,7 +114,7 @@ def main() -> None:
                 onnx.save(m, str(path))
                 sessions[(engine, cut)] = open_session(path, SessionConfig(backend=engine, threads=2), stage)
                 names[(engine, cut)] = [i.name for i in m.graph.input]
-        # each cut's own inputs (the flow and the confidence read no image, point or pose)
+        # by each graph's input names (the cuts keep every input of the graph they come from)
         fed = {k: [{n: f[n] for n in names[k]} for f in feeds] for k in sessions}
         for k, s in sessions.items():
             for f in fed[k][:3]:
@@ -127,4 +137,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except D3LVOInputError as e:  # a folder that is no model or no sequence: one line, no traceback
+        sys.exit(f"error: {e}")

@@ -47,19 +47,19 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
     monkeypatch.setattr(StageModel, "__init__",
                         lambda self, *a, **k: (opened.append((a or [k.get("model_dir")])[0]), init(self, *a, **k))[1])
     demo = tmp_path / "demo"
-    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "8"])
+    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "9"])
     assert r.exit_code == 0, r.output
     assert len(opened) == 1, opened
     assert "ATE m" in r.output and "latency" in r.output
     for drive in ("synthetic_heldout", "synthetic_traffic"):
         assert (demo / f"{drive}.png").stat().st_size > 1000
         for kind in ("poses", "direct"):
-            assert len((demo / f"{drive}_{kind}.txt").read_text().splitlines()) == 8
-    assert len(list((demo / "synthetic_traffic" / "motion_2").glob("*.png"))) == 8
+            assert len((demo / f"{drive}_{kind}.txt").read_text().splitlines()) == 9
+    assert len(list((demo / "synthetic_traffic" / "motion_2").glob("*.png"))) == 9
     assert not (demo / "synthetic_heldout" / "motion_2").exists()
-    # the traffic drive's pictures of what the network sees: frames 2, 4, 6 (every 8 // 4)
+    # the traffic drive's pictures of what the network sees: frames 2, 4, 6, 8 (every 9 // 4)
     assert sorted(p.name for p in (demo / "synthetic_traffic_viz").glob("*.png")) == \
-        ["000002.png", "000004.png", "000006.png"]
+        ["000002.png", "000004.png", "000006.png", "000008.png"]
     rows = [line for line in r.output.splitlines() if "│ seed 9" in line]  # the scores' table
     assert len(rows) == 4 and sum("│ seed 910" in line for line in rows) == 2
     real = find_real_frames()
@@ -74,7 +74,7 @@ def test_demo_runs_end_to_end(tmp_path, monkeypatch):
             assert off == pytest.approx(np.linalg.norm(est[-1, :3, 3] - ref[-1, :3, 3]), abs=0.005)
         assert "│ LiDAR-only (KISS-ICP)" in printed
     monkeypatch.setattr(lidar_reference, "have_kiss_icp", lambda: False)
-    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "8", "--no-traffic"])
+    r = runner.invoke(app, ["demo", "--out", str(demo), "--frames", "9", "--no-traffic"])
     assert r.exit_code == 0, r.output
     assert len(opened) == 2, opened
     assert "reusing the held-out static" in r.output and "traffic" not in r.output.split("3/3")[0].split("2/3")[1]
