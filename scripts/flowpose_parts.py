@@ -2,9 +2,9 @@
 
     .venv/bin/python scripts/flowpose_parts.py [SEQ] [--onnx DIR] [--rounds 5]
 
-Runs the model folder (default: the bundled model) with `d3lvo run`'s engine choice set to
-onnxruntime over SEQ (default: the 20 real KITTI frames of ../shared/data) and keeps the inputs
-its flow+pose stage was given. Each engine's own flow+pose graph is then cut four ways and every
+Tracks SEQ (default: the 20 real KITTI frames of ../shared/data) with the model folder (default:
+the bundled model) on onnxruntime (the `Odometry` API) and keeps the inputs its flow+pose stage
+was given. Each engine's own flow+pose graph is then cut four ways and every
 cut opened with the runtime's sessions (`d3lvo_deploy.backends`, 2 threads):
 
 - as shipped;
@@ -40,33 +40,31 @@ from d3lvo_deploy.backends import SessionConfig, open_session
 from d3lvo_deploy.bundled import bundled_model_dir, find_real_frames
 from d3lvo_deploy.errors import D3LVOInputError
 from d3lvo_deploy.manifest import for_engine, load_manifest
-from d3lvo_deploy.onnx_model import StageModel
-from d3lvo_deploy.pipeline import RunConfig, run_sequence
+from d3lvo_deploy.odometry import Odometry
 from d3lvo_deploy.sequence import KittiSequence
 
 FLOW_OUTPUTS = ("flow_l1", "confidence_l1", "point_weights")
 CUTS = ("as shipped", "without the steps", "flow and confidence", "flow")
 
 
-def recorded_feeds(model_dir: Path, seq: KittiSequence, out: Path) -> tuple[str, list[dict]]:
-    """The flow+pose stage's name and its inputs at every pair of a run on onnxruntime."""
-    feeds: list[tuple[str, dict]] = []
-    run = StageModel.run
+def recorded_feeds(model_dir: Path, seq: KittiSequence) -> tuple[str, list[dict]]:
+    """The flow+pose graph's name and its inputs at every pair of the sequence, tracked on onnxruntime."""
+    odo = Odometry(model_dir, seq.calib, SessionConfig(backend="onnxruntime", threads=2))
+    feeds: list[dict] = []
+    run = odo.model.run
 
-    def keep(self, stage, inputs):
-        if stage == "flowpose":  # the graph it opens: with the classical solve beside, flowpose_weighted
-            feeds.append((self._graph(stage), {k: np.array(v) for k, v in inputs.items()}))
-        return run(self, stage, inputs)
+    def keep(stage, inputs):
+        if stage == "flowpose":
+            feeds.append({k: np.array(v) for k, v in inputs.items()})
+        return run(stage, inputs)
 
-    StageModel.run = keep
-    try:
-        run_sequence(seq, model_dir, RunConfig(out=out, overwrite=True),
-                     SessionConfig(backend="onnxruntime", threads=2))
-    finally:
-        StageModel.run = run
+    odo.model.run = keep
+    for i in range(len(seq)):
+        odo.step(seq.image(i), seq.scan(i), float(seq.times[i]))
     if not feeds:
         sys.exit(f"{seq.root}: no pair reached the flow+pose stage (fewer than two frames?)")
-    return feeds[0][0], [f for _, f in feeds]
+    # the graph "flowpose" opens: flowpose_weighted where the classical solve runs beside
+    return odo.model._graph("flowpose"), feeds
 
 
 def without_steps(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -104,7 +102,7 @@ def main() -> None:
     manifest = load_manifest(model_dir)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        stage, feeds = recorded_feeds(model_dir, KittiSequence.open(seq_dir), tmp / "poses.txt")
+        stage, feeds = recorded_feeds(model_dir, KittiSequence.open(seq_dir))
         sessions, names = {}, {}
         for engine in ("onnxruntime", "openvino"):
             graph = onnx.load(str(model_dir / for_engine(manifest["stages"][stage], engine)["file"]))
