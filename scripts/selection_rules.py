@@ -30,8 +30,12 @@ name: the photometric test at `pt_select` 0.005, `pt_select_rotation` 0.05 (chos
 scan gate; with it the bundled model ships 0.003, the `ships at` rows), without the cap and the
 scan's pass unless the name says so; `ships`: the cap and the scan's pass beside that test. And the
 grid of thresholds again, each with what ships beside the photometric test (the cap at 0.7, or the
-scan's pass at 0.7). `--cache DIR` keeps each drive's record (keyed by the checkpoint's hash and
-whether `--quick`), so that scoring the rules on other drives, or again, runs no network twice;
+scan's pass at 0.7). And what ships with a memory (`as it ships`: the bundled model's thresholds,
+`pt_select` 0.003, with the cap and the scan's pass): the weighted pose held on for H more pairs
+after each pair it keeps it on, or held for as long as frame t's scan fits it at most v times
+worse than the classical pose, or as long as the network distrusts at least a share of the points
+(`latched`). `--cache DIR` keeps each drive's record (keyed by the checkpoint's hash and whether
+`--quick`), so that scoring the rules on other drives, or again, runs no network twice;
 the key names the drive's folder, not its content: empty DIR when a drive is rendered again.
 """
 
@@ -70,6 +74,10 @@ SCAN_PASS = (0.5, 0.7, 0.85)  # ... or kept wherever its scan error is below thi
 SIGNIFICANCE = (2, 3, 5, 8)  # the gain's mean over the trusted points in standard errors of that mean
 RECENT = ((3, 2), (5, 2), (5, 3), (10, 2))  # (K, M): the photometric test passed on M of the last K pairs
 RECENT_SHARE = ((5, 0.3), (10, 0.3), (10, 0.35))  # (K, s): the network distrusted s on average over K pairs
+AS_SHIPPED = (0.003, 0.05)  # the bundled model's pt_select and pt_select_rotation (with the scan gate)
+HOLD = (1, 2, 4, 9)  # the weighted pose kept on the H pairs after each one the selection keeps it on
+LATCH_SCAN = (1.0, 1.1)  # ... kept while frame t's scan fits it at most this times worse than the classical pose
+LATCH_SHARE = (0.1, 0.2, 0.3)  # ... kept while the network distrusts at least this share of the points
 
 
 def distrusted_share(weight: torch.Tensor, mask: torch.Tensor) -> float:
@@ -240,6 +248,26 @@ def with_cap_or_scan(photometric, share: float = 0.7, scan_pass: float = 0.7):
     return lambda ps, i: (photometric(ps, i) and ps[i]["share"] <= share) or bool(scan_fits(ps, i, "scan", scan_pass, True))
 
 
+def held_after(start, h: int):
+    """The weighted pose kept where `start` keeps it and on the `h` pairs after each such pair."""
+    return lambda ps, i: any(start(ps, j) for j in range(max(0, i - h), i + 1))
+
+
+def latched(start, stay):
+    """A choice with memory: the weighted pose kept where `start` keeps it, and on each following
+    pair while `stay` holds (a vehicle stays in view for a while; once the selection has seen it,
+    weaker evidence keeps the weighted pose). Each drive's choices in order, kept per drive."""
+    memo: dict[int, list[bool]] = {}
+
+    def keep(ps, i):
+        seq = memo.setdefault(id(ps), [])
+        while len(seq) <= i:
+            j = len(seq)
+            seq.append(bool(start(ps, j) or (j > 0 and seq[j - 1] and stay(ps, j))))
+        return seq[i]
+    return keep
+
+
 def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path | None = None) -> None:
     for drive in drives:
         if not (Path(drive) / "poses.txt").is_file():
@@ -297,6 +325,15 @@ def main(drives: list[str], checkpoint: Path, quick: bool = False, cache: Path |
                    np.mean([ps[j]["share"] for j in last(i, k)]) >= f)) for k, f in RECENT_SHARE]
         rules += [(f"ships, and its gain above {z} standard errors", ships(lambda ps, i, z=z:
                    ps[i]["significance"] > z)) for z in SIGNIFICANCE]
+        # what ships with memory: the weighted pose held on after the selection keeps it, for a few
+        # pairs, or as long as the scan does not fit it worse or the network still distrusts points
+        as_ships = with_cap_or_scan(photometric_test(*AS_SHIPPED))
+        rules.append(("as it ships", as_ships))
+        rules += [(f"as it ships, held {h} pairs after", held_after(as_ships, h)) for h in HOLD]
+        rules += [(f"as it ships, held while scan W <= {v} C", latched(as_ships, lambda ps, i, v=v:
+                   scan_fits(ps, i, "scan", v, False) is not False)) for v in LATCH_SCAN]
+        rules += [(f"as it ships, held while distrusted >= {f}", latched(as_ships, lambda ps, i, f=f:
+                   ps[i]["share"] >= f)) for f in LATCH_SHARE]
         # the photometric test's thresholds chosen again with what ships beside it
         rules += [(f"ships at pt_select {g} pt_select_rotation {r}", with_cap_or_scan(photometric_test(g, r)))
                   for g, r in itertools.product(GAINS, ROTATIONS)]
