@@ -662,3 +662,9 @@ done
 # (docs/model-card.md, "A learned choice between the two poses"; pip install -e '.[analysis]')
 .venv/bin/python scripts/learned_choice.py --cache "$OUT/selcache" --fit "$OUT"/data/val_static* "$OUT"/data/val_traffic* \
   --score "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/demo_909 "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
+# the choice with a memory (the weighted pose held for a few pairs after each pair it is kept on,
+# or while frame t's scan or the network's distrust still speaks for it), chosen on the validation
+# drives and scored on the held-out traffic drives from the same records (docs/model-card.md, "The
+# choice held for a few pairs"): not shipped
+.venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/val_static* "$OUT"/data/val_traffic*
+.venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
