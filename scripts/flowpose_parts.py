@@ -81,8 +81,7 @@ def without_steps(model: onnx.ModelProto) -> onnx.ModelProto:
 
 
 def cut_at(model: onnx.ModelProto, outputs: tuple[str, ...]) -> onnx.ModelProto:
-    """The part of the graph (its solver's Loops emptied first) that these outputs need."""
-    model = without_steps(model)
+    """The part of the graph (its solver's Loops emptied by `without_steps`) that these outputs need."""
     missing = set(outputs) - {x.name for x in model.graph.output}
     if missing:
         sys.exit(f"this flow+pose graph has no output {', '.join(sorted(missing))}")
@@ -106,8 +105,8 @@ def main() -> None:
         sessions, names = {}, {}
         for engine in ("onnxruntime", "openvino"):
             graph = onnx.load(str(model_dir / for_engine(manifest["stages"][stage], engine)["file"]))
-            for cut, m in zip(CUTS, (graph, without_steps(graph), cut_at(graph, FLOW_OUTPUTS),
-                                     cut_at(graph, FLOW_OUTPUTS[:1]))):
+            bare = without_steps(graph)
+            for cut, m in zip(CUTS, (graph, bare, cut_at(bare, FLOW_OUTPUTS), cut_at(bare, FLOW_OUTPUTS[:1]))):
                 path = tmp / f"{engine}_{len(sessions)}.onnx"
                 onnx.save(m, str(path))
                 sessions[(engine, cut)] = open_session(path, SessionConfig(backend=engine, threads=2), stage)
