@@ -123,7 +123,7 @@ def export_command(
     dynamic_batch: bool = typer.Option(False, "--dynamic-batch", help="Leave the batch dimension dynamic."),
     precision: str = typer.Option("fp32", "--precision", help="fp32 | fp16 | int8 (static, QDQ, per-channel)."),
     solver: list[str] = typer.Option([], "--set", help="Solver setting KEY=VALUE without weights (point solver: "
-                                     "pt_iters, pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_scale_every, pt_median_stride, pt_refine, pt_affine, pt_fine_restart, pt_restart_depth, pt_scan_gate, pt_conf_power, pt_gate, pt_conf_full, pt_select, pt_select_rotation, pt_select_unexplained, pt_select_scan, pt_select_scan_pass, pt_select_share, pt_classical_chain; cell solver: "
+                                     "pt_iters, pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_scale_every, pt_median_stride, pt_refine, pt_affine, pt_fine_restart, pt_restart_depth, pt_scan_gate, pt_conf_power, pt_gate, pt_conf_full, pt_select, pt_select_rotation, pt_select_unexplained, pt_select_scan, pt_select_scan_pass, pt_select_share, pt_classical_chain, pt_select_hold; cell solver: "
                                      "gn_points, gn_iters, gn_huber, gn_damping, gn_lidar_pool), e.g. --set "
                                      "pt_iters=10,10,10; repeatable."),
     calib_seq: list[Path] = typer.Option([], "--calib-seq", help="INT8 calibration sequence (repeatable; default: "

@@ -64,7 +64,7 @@ def train_command(
                                       "the Gauss-Newton solver into the confidence (0: motion masks only; turns off "
                                       "flip and rotation augmentation, which the solver's images do not get)."),
     solver: list[str] = typer.Option([], "--set", help="Solver setting without weights, KEY=VALUE (pt_iters, "
-                                     "pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_scale_every, pt_median_stride, pt_refine, pt_affine, pt_fine_restart, pt_restart_depth, pt_scan_gate, pt_conf_power, pt_gate, pt_conf_full, pt_select, pt_select_rotation, pt_select_unexplained, pt_select_scan, pt_select_scan_pass, pt_select_share, pt_classical_chain; gn_points, "
+                                     "pt_capacity, pt_min_gradient, pt_stop, pt_damping, pt_scale_every, pt_median_stride, pt_refine, pt_affine, pt_fine_restart, pt_restart_depth, pt_scan_gate, pt_conf_power, pt_gate, pt_conf_full, pt_select, pt_select_rotation, pt_select_unexplained, pt_select_scan, pt_select_scan_pass, pt_select_share, pt_classical_chain, pt_select_hold; gn_points, "
                                      "gn_iters, gn_huber, gn_damping, gn_lidar_pool); repeatable; may differ from "
                                      "the checkpoint's on --resume."),
 ) -> None:

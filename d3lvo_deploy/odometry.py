@@ -28,6 +28,7 @@ from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                      finest_level, point_config, solver_feeds, textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
+from .selection import SELECT_KEPT_OUTPUT, hold_step
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 # a frame's stage that runs on another thread beside those (`FrameTiming.beside`), as the tables name it
@@ -179,6 +180,11 @@ class Odometry:
         self.pyramid_levels = len(self.model.config["pt_iters"]) if takes_pyramids else 0
         # and one that checks the finest level's restart against frame t's scan, its LiDAR depth
         self.takes_depth = SCAN_DEPTH_INPUT in self.model.input_names("flowpose")
+        # `pt_select_hold`: the weighted pose held on this many pairs after each the graph keeps it on
+        self.hold = int(self.model.config.get("pt_select_hold", 0) or 0)
+        if self.hold and SELECT_KEPT_OUTPUT not in self.model.output_names("flowpose"):
+            raise D3LVOInputError(self.model.dir / "manifest.json", f"sets pt_select_hold {self.hold} but its flow+pose "
+                                  f"graph has no `{SELECT_KEPT_OUTPUT}` output: export the model again")
         self.prepare_threads = sc.preparing_threads  # `prepare`'s threads (the session setting resolved)
         # `prepare`'s second thread: started by the first job given to it; it ends when the
         # executor is collected with this object
@@ -229,6 +235,7 @@ class Odometry:
         self.motion2_classical: np.ndarray | None = None
         self.cold = True  # no previous motion yet
         self.frames = 0
+        self.hold_left = 0  # `hold`: pairs left on which the weighted pose is kept whatever the graph chose
         # the motion guard's state: the last kept image_2 motion (None until a pair has one), its
         # time, and how many pairs the guard replaced
         self.kept2: np.ndarray | None = None
@@ -377,13 +384,15 @@ class Odometry:
             A2 = out["matrix"][0].astype(np.float64)
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
+            start = out.get("start_next")
+            if self.hold:
+                A2 = self._held(A2, out)
             A2, held = self._guarded(A2, enc.get("stamp"))
             self.relative = change_frame(A2, self.calib.T_cam0_cam2)
             before, self.pose = self.pose, self.pose @ self.relative
             # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
             # that an interrupted and resumed run starts every pair where an uninterrupted one does
             self.motion2 = self._motion_between(before, self.pose)
-            start = out.get("start_next")
             if not held and start is not None and np.all(np.isfinite(start)):
                 self.motion2 = start[0].astype(np.float64)
             classical = out.get(CLASSICAL_NEXT_OUTPUT)
@@ -396,6 +405,14 @@ class Odometry:
         self._prev = enc
         self.frames += 1
         return self.pose.copy()
+
+    def _held(self, A2: np.ndarray, out: dict[str, np.ndarray]) -> np.ndarray:
+        """The pair's kept motion with the choice's memory (`hold_step`): the weighted pose
+        (`start_next`) on the `hold` pairs after one whose graph kept it."""
+        kept = bool(np.asarray(out[SELECT_KEPT_OUTPUT]).reshape(-1)[0] > 0.5)
+        use, self.hold_left = hold_step(kept, self.hold_left, self.hold)
+        weighted = out["start_next"][0].astype(np.float64)
+        return weighted if use and not kept and np.all(np.isfinite(weighted)) else A2
 
     @property
     def _prev_stamp(self) -> float | None:
@@ -444,11 +461,12 @@ class Odometry:
 
     def prime(self, image: np.ndarray, points: np.ndarray | None, pose: np.ndarray,
               previous_pose: np.ndarray | None = None, start: np.ndarray | None = None,
-              stamp: float | None = None, previous_stamp: float | None = None) -> None:
+              stamp: float | None = None, previous_stamp: float | None = None, hold_left: int = 0) -> None:
         """Resume: take frame t-1 and its known pose without estimating anything; with the pose
         before it, the next pair starts from that motion, as an uninterrupted run would (or from
         `start`, the saved `start_state`, where the graph `keeps_own_start`), and the motion guard
-        compares the next pair with it (the two frames' stamps give its time)."""
+        compares the next pair with it (the two frames' stamps give its time). `hold_left`: the
+        saved `hold_left` where the model holds its choice (`pt_select_hold`)."""
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         if start is not None:  # one 4x4, or `start_state`'s (K,4,4)
@@ -467,6 +485,9 @@ class Odometry:
             self.motion2 = start[0]
         # without a saved classical start, the classical solve starts where the weighted one does
         self.motion2_classical = start[1] if start is not None and len(start) > 1 else None
+        if not (isinstance(hold_left, (int, np.integer)) and 0 <= hold_left <= self.hold):
+            raise ValueError(f"prime's hold_left must be a whole number in 0..{self.hold} (pt_select_hold), not {hold_left!r}")
+        self.hold_left = int(hold_left)
         self.frames += 1
 
     def _motion_between(self, before: np.ndarray, after: np.ndarray) -> np.ndarray:

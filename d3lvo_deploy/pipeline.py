@@ -108,30 +108,37 @@ def _existing_poses(path: Path, fmt: str, n_max: int) -> np.ndarray:
 
 def start_file(out: Path) -> Path:
     """Where a run whose graph keeps its own start (`Odometry.keeps_own_start`) saves, per frame,
-    the next pair's start, so that --resume continues exactly where the run stopped."""
+    the next pair's start (and, where the model holds its choice, `Odometry.hold_left` after the
+    matrices), so that --resume continues exactly where the run stopped."""
     return out.with_name(out.name + ".start")
 
 
-def _saved_starts(path: Path, count: int, per_line: int = 1) -> np.ndarray | None:
-    """The first `count` lines of starts saved in `path` ((count, per_line, 4, 4): each line is
-    `Odometry.start_state`; the file rewritten to hold just those), or None where fewer were saved
-    or they cannot be read."""
+def _saved_starts(path: Path, count: int, per_line: int = 1,
+                  holds: bool = False) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """The first `count` lines of starts saved in `path`: ((count, per_line, 4, 4), each line's
+    `Odometry.start_state`; with `holds`, (count,) each line's `Odometry.hold_left`, else None),
+    the file rewritten to hold just those; None where fewer were saved or they cannot be read."""
     try:
         rows = [r.split() for r in path.read_text().splitlines()]
-        rows = [r for r in rows if len(r) == 12 * per_line]
+        rows = [r for r in rows if len(r) == 12 * per_line + holds]
         if len(rows) < count:
             return None
         T = np.tile(np.eye(4), (count, per_line, 1, 1))
-        T[:, :, :3, :] = np.array(rows[:count], dtype=np.float64).reshape(count, per_line, 3, 4)
+        T[:, :, :3, :] = np.array([r[:12 * per_line] for r in rows[:count]], dtype=np.float64).reshape(count, per_line, 3, 4)
+        left = np.array([int(r[-1]) for r in rows[:count]]) if holds else None
+        if left is not None and (left < 0).any():
+            return None
         path.write_text("".join(" ".join(r) + "\n" for r in rows[:count]))
     except (OSError, ValueError):  # UnicodeDecodeError is a ValueError
         return None
-    return T
+    return T, left
 
 
-def _start_line(state: np.ndarray) -> str:
-    """One line of the start file: `Odometry.start_state`'s matrices, 12 numbers each."""
-    return " ".join(format_kitti(T) for T in state) + "\n"
+def _start_line(odo) -> str:
+    """One line of the start file: `Odometry.start_state`'s matrices, 12 numbers each, then
+    `hold_left` where the model holds its choice."""
+    hold = f" {odo.hold_left}" if getattr(odo, "hold", 0) else ""
+    return " ".join(format_kitti(T) for T in odo.start_state()) + hold + "\n"
 
 
 def _open_starts(odo, out: Path, done: int, stack: ExitStack):
@@ -145,7 +152,7 @@ def _open_starts(odo, out: Path, done: int, stack: ExitStack):
         except OSError:
             pass
         return None, None
-    saved = _saved_starts(path, done, len(odo.start_state())) if done else None
+    saved = _saved_starts(path, done, len(odo.start_state()), bool(getattr(odo, "hold", 0))) if done else None
     if done > 1 and saved is None:
         warnings.warn(f"{path}: the solver's saved starts are missing or short, so the resumed run starts from "
                       "the last poses' motion and may differ slightly from an uninterrupted run")
@@ -316,15 +323,17 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
         starts, saved = _open_starts(odo, out, len(done), stack)
         if len(done):
             k = rc.start + len(done) - 1
-            extra = {} if saved is None else {"start": saved[-1]}
+            extra = {} if saved is None else {"start": saved[0][-1]}
+            if saved is not None and saved[1] is not None:
+                extra["hold_left"] = int(min(saved[1][-1], odo.hold))
             odo.scan_source = f"frame {seq.frame_names[k]}'s scan"
             odo.prime(seq.image(k), seq.scan(k) if odo.needs_scan else None, done[-1],
                       done[-2] if len(done) >= 2 else None, **extra, stamp=float(seq.times[k]),
                       previous_stamp=float(seq.times[k - 1]) if len(done) >= 2 else None)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
-                state = odo.start_state()
-                rest = [np.tile(np.eye(4), (len(state), 1, 1))] * (len(done) - 1)
-                starts.write("".join(_start_line(S) for S in [*rest, state]))
+                last = _start_line(odo)  # identity starts (and no hold) on the rows the run cannot know
+                rest = " ".join([format_kitti(np.eye(4))] * len(odo.start_state())) + (" 0" if getattr(odo, "hold", 0) else "") + "\n"
+                starts.write(rest * (len(done) - 1) + last)
         t_wall0 = time.perf_counter()
         pipelined = plan.depth > 1
         deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
@@ -396,7 +405,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
                 line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
                 if starts is not None:  # before the pose: a run stopped between the two resumes exactly
-                    starts.write(_start_line(odo.start_state()))
+                    starts.write(_start_line(odo))
                 fh.write(line + "\n")
                 fh.flush()
                 for k, v in odo.last_timing.rows.items():  # the time beside (another thread) not in the total

@@ -22,6 +22,7 @@ from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
 from d3lvo_deploy.points import (CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                                  point_config, solver_feeds)
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, hold_step
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import SOLVER_KEYS, D3LVOConfig
@@ -131,6 +132,16 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     # with `pt_classical_chain`, each side's classical solve's start: its previous `classical_next`
     chained = cfg.pt_classical_chain
     classical_t = classical_o = classical_f = None
+    # with `pt_select_hold`, each side's chain holds the weighted pose as the runtime does
+    left = {"t": 0, "o": 0, "f": 0}
+
+    def kept(side: str, out: dict) -> np.ndarray:
+        matrix = np.asarray(out["matrix"][0], np.float64)
+        if not cfg.pt_select_hold:
+            return matrix
+        use, left[side] = hold_step(bool(np.asarray(out[SELECT_KEPT_OUTPUT]).reshape(-1)[0] > 0.5), left[side],
+                                    cfg.pt_select_hold)
+        return np.asarray(out["start_next"][0], np.float64) if use else matrix
 
     def with_classical(feeds: dict, motion: np.ndarray, classical: np.ndarray | None) -> dict:
         if chained:
@@ -189,8 +200,8 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             if chained:
                 classical_t = fp_t[CLASSICAL_NEXT_OUTPUT][0].astype(np.float64)
                 classical_o = out_o[CLASSICAL_NEXT_OUTPUT][0].astype(np.float64)
-            chain_t.append(fp_t["matrix"][0].astype(np.float64))
-            chain_o.append(out_o["matrix"][0].astype(np.float64))
+            chain_t.append(kept("t", fp_t))
+            chain_o.append(kept("o", out_o))
         raw = _forward_inputs(pre, seq, i, cfg)
         if raw_prev is not None:
             init = torch.from_numpy(motion_f.astype(np.float32))[None] if geometric else None
@@ -206,7 +217,7 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
             conf_levels = (cfg.flow_levels[-1],) if cfg.point_solver else cfg.gn_levels
             for lvl, c in zip(conf_levels if "confidence" in fwd else (), fwd.get("confidence", [])):
                 diff("vs_forward", f"confidence_l{lvl}").update(c.numpy(), out_o[f"confidence_l{lvl}"])
-            chain_f.append(fwd["matrix"][0].double().numpy())
+            chain_f.append(kept("f", fwd))
         prev_t, prev_o, raw_prev, solver_prev = enc_t, enc_o, raw, solver_cur
     rep.chained_t_m, rep.chained_r_deg = _largest_motion(relative(np.array(chain_t), np.array(chain_o)))
     rep.reference_t_m, rep.reference_r_deg = _largest_motion(relative(np.array(chain_f), np.array(chain_o)))

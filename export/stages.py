@@ -15,6 +15,7 @@ from __future__ import annotations
 from torch import nn
 
 from d3lvo_deploy.points import CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT
 from models.d3lvo import D3LVO
 from models.point_solver import pyramid_input_names
 
@@ -82,6 +83,8 @@ def flowpose_output_names(model: D3LVO) -> list[str]:
     start = ["start_next"] if cfg.point_solver and cfg.pt_select > 0 else []
     if cfg.pt_classical_chain:  # the config allows it only beside `start_next`
         start.append(CLASSICAL_NEXT_OUTPUT)
+    if cfg.pt_select_hold:  # likewise: which pose the choice kept, for the runtime's hold
+        start.append(SELECT_KEPT_OUTPUT)
     return [f"flow_l{lvl}" for lvl in cfg.flow_levels] + conf + ["level_poses", "level_weights", "pose", "matrix"] + start
 
 
@@ -149,7 +152,7 @@ class FlowPoseStage(nn.Module):
                                    levels("grey2"), byname.get("intrinsics"), byname.get("init_pose"),
                                    levels("lidar1") if self.model.cfg.gn_lidar else None, solver, levels("invdepth2"))
         extra = [out["point_weights"]] if "point_weights" in out else []
-        start = [out[n] for n in ("start_next", CLASSICAL_NEXT_OUTPUT) if n in out]
+        start = [out[n] for n in ("start_next", CLASSICAL_NEXT_OUTPUT, SELECT_KEPT_OUTPUT) if n in out]
         return (*out["flows"], *out.get("confidence", []), *extra, out["poses"], out["weights"], out["pose"],
                 out["matrix"], *start)
 

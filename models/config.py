@@ -16,7 +16,8 @@ MAX_PYRAMID_LEVELS = 5
 SOLVER_KEYS = ("gn_points", "gn_iters", "gn_huber", "gn_damping", "gn_lidar_pool", "pt_iters", "pt_stop", "pt_damping",
                "pt_capacity", "pt_min_gradient", "pt_conf_power", "pt_gate", "pt_conf_full", "pt_scale_every", "pt_median_stride",
                "pt_refine", "pt_affine", "pt_fine_restart", "pt_restart_depth", "pt_scan_gate", "pt_select", "pt_select_rotation", "pt_select_unexplained",
-               "pt_select_scan", "pt_select_scan_pass", "pt_select_share", "pt_classical_chain")
+               "pt_select_scan", "pt_select_scan_pass", "pt_select_share", "pt_classical_chain",
+               "pt_select_hold")
 
 
 def check_solver_settings(settings: dict) -> None:
@@ -191,6 +192,12 @@ class D3LVOConfig:
     # `classical_start`, output `classical_next`). Off in the bundled model: no static gain, some
     # traffic lost (docs/model-card.md)
     pt_classical_chain: bool = False
+    # with pt_select: the weighted pose also kept on this many pairs after each pair the choice
+    # keeps it on (graph output `select_kept`; the runtime holds the count, and a resumed run reads
+    # it back from the `.start` file). A vehicle that pulled the classical pose off stays in view
+    # for a while, and the evidence that picked the weighted pose on one pair is often just under
+    # the thresholds on the next (docs/model-card.md, chosen on validation drives). 0: off
+    pt_select_hold: int = 0
     # what the confidence net reads: "evidence", only where the starting motion fails to explain
     # frame t (flow minus rigid flow, the depth, rigid-warp and flow-warp residuals) and the inverse
     # depth; "all" adds the flow estimator's state and frame t-1's features, from which it also
@@ -307,6 +314,12 @@ class D3LVOConfig:
         if self.pt_classical_chain and not (self.point_solver and self.pt_select > 0):
             raise ValueError("pt_classical_chain needs a point solver that also solves its classical mode (pt_select "
                              "above 0): without it there is no classical solve to start")
+        if not (isinstance(self.pt_select_hold, int) and not isinstance(self.pt_select_hold, bool)
+                and 0 <= self.pt_select_hold <= 1000):
+            raise ValueError(f"pt_select_hold must be a whole number of pairs in 0..1000 (0: off), not {self.pt_select_hold!r}")
+        if self.pt_select_hold and not (self.point_solver and self.pt_select > 0):
+            raise ValueError("pt_select_hold needs a point solver that chooses between its weighted and classical "
+                             "poses (pt_select above 0): without the choice there is nothing to hold")
         if self.pt_conf_inputs not in ("all", "evidence"):
             raise ValueError(f"pt_conf_inputs must be all or evidence, not {self.pt_conf_inputs!r}")
         if not (isinstance(self.pt_conf_full, (int, float)) and 0 < self.pt_conf_full <= 1):

@@ -14,6 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT
+
 from .completion import DepthCompletion
 from .config import D3LVOConfig
 from .encoder import PyramidEncoder
@@ -148,6 +150,8 @@ class D3LVO(nn.Module):
                 out["start_next"] = pose_to_matrix(normalise_pose(gn.matrix_to_pose(res["start_next"])))
             if self.cfg.pt_classical_chain:  # the classical solve's next start
                 out["classical_next"] = pose_to_matrix(normalise_pose(gn.matrix_to_pose(res["classical"])))
+            if self.cfg.pt_select_hold:  # which pose the choice kept: the runtime holds the weighted one
+                out[SELECT_KEPT_OUTPUT] = res["select_kept"]
             return out
         if self.gn_pose is None:
             levels = torch.stack(poses, 1)  # (B, L, 7)

@@ -230,6 +230,7 @@ class PointPose(nn.Module):
                     keep = keep | ((fits[:, 0] < self.cfg.pt_select_scan_pass * fits[:, 1]) & evidence)
             levels = [*levels[:-1], torch.where(keep[:, None, None], levels[-1], classical)]
             out["consensus_gain"], out["classical"] = gain, classical  # for choosing the thresholds offline
+            out["select_kept"] = keep.to(gain.dtype)  # 1 where the weighted pose is kept (`pt_select_hold`)
         else:
             levels = solve(grey1, stack2, points, weight, K_image, init, self.settings, mask=mask,
                            depth2=solver.get(SCAN_DEPTH_INPUT))

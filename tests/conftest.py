@@ -189,7 +189,8 @@ def scan_judge_model(points_model, tmp_path_factory):
     redrawn at std 3, as in the rotation gate's test: an untrained confidence is the same on every
     point, and the two solves then agree. Its classical solve is a stage of its own, as the bundled
     model's, and starts from the previous classical pose (`pt_classical_chain`, which the bundled
-    model leaves off)."""
+    model leaves off); it holds the weighted pose one pair after each it keeps (`pt_select_hold`),
+    so that its graph says which pose it kept."""
     from export.onnx_export import ExportConfig, export_checkpoint
     from models.checkpoint import build_model, load_checkpoint, save_checkpoint
     from models.d3lvo import D3LVO
@@ -201,7 +202,7 @@ def scan_judge_model(points_model, tmp_path_factory):
 
         # two pyramid levels: the choice between the poses is what is tested; each level is graph to export
         solver = dict(pt_fine_restart=0.0, pt_restart_depth=0.0, pt_select=0.999, pt_select_scan_pass=1.0,
-                      pt_iters=(6, 6), pt_classical_chain=True)
+                      pt_iters=(6, 6), pt_classical_chain=True, pt_select_hold=1)
         fixture = build_model(load_checkpoint(points_model[0]))
         model = D3LVO(replace(fixture.cfg, **solver)).eval()
         model.load_state_dict(fixture.state_dict())

@@ -809,6 +809,7 @@ def test_parity_of_a_graph_that_chains_its_classical_solve(scan_judge_model, sma
     rep = run_parity(*scan_judge_model, small_synth, frames=4)
     assert rep.passed, rep.to_dict()
     assert rep.stages["flowpose"]["classical_next"].max_abs < 1e-4
+    assert rep.stages["flowpose"]["select_kept"].max_abs == 0  # the same choice on both sides, pair by pair
     assert rep.chained_t_m <= POSE_T_TOL and rep.chained_r_deg <= POSE_R_TOL
 
 

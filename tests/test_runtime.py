@@ -216,11 +216,13 @@ def test_resume_restores_the_start_a_graph_keeps_of_its_own(which, small_synth, 
             want = [out["start_next"][0]] + ([out["classical_next"][0]] if odo.chains_classical else [])
             np.testing.assert_allclose(odo.start_state(), np.stack(want), atol=1e-7)
             if i > 1:  # the classical solve started where the previous pair left it
-                np.testing.assert_allclose(fed[-1][0][:3], starts[-1].reshape(-1, 3, 4)[-1], atol=1e-7)
-        starts.append(odo.start_state()[:, :3].reshape(-1))
+                np.testing.assert_allclose(fed[-1][0][:3], starts[-1][:len(odo.start_state()) * 12].reshape(-1, 3, 4)[-1],
+                                           atol=1e-7)
+        # (and, where the model holds its choice, `pt_select_hold`, the count left at the end)
+        starts.append(np.r_[odo.start_state()[:, :3].reshape(-1), [odo.hold_left] if odo.hold else []])
     assert len(fed) == len(seq) - 1
     if odo.chains_classical:  # the two starts differ, so feeding the weighted one would show
-        assert max(np.abs(s[:12] - s[12:]).max() for s in starts) > 1e-6
+        assert max(np.abs(s[:12] - s[12:24]).max() for s in starts) > 1e-6
     full, part = tmp_path / "full.txt", tmp_path / "part.txt"
     run_sequence(seq, model, RunConfig(out=full))
     saved = np.loadtxt(start_file(full))
