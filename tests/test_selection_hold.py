@@ -9,6 +9,7 @@ import pytest
 from d3lvo_deploy.bundled import bundled_model_dir
 from d3lvo_deploy.geometry import accumulate, change_frame, make_se3
 from d3lvo_deploy.odometry import Odometry
+from d3lvo_deploy.onnx_model import StageModel
 from d3lvo_deploy.pipeline import RunConfig, run_sequence, start_file
 from d3lvo_deploy.poses import read_poses
 from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, hold_step
@@ -44,10 +45,10 @@ LEFT = [0, 0, 2, 1, 0, 0]
 CLASSICAL, WEIGHTED = make_se3(np.eye(3), [0.0, 0.0, 0.5]), make_se3(np.eye(3), [0.02, 0.0, 0.6])
 
 
-def scripted(seq: KittiSequence) -> Odometry:
+def scripted(seq: KittiSequence, model: StageModel) -> Odometry:
     """The bundled model's tracker with hold 2 and a flow+pose stage that returns, for the pair
     ending at frame t (found by its stamp), the classical or weighted pose as the choice `KEPT`."""
-    odo = Odometry(bundled_model_dir(), seq.calib)
+    odo = Odometry(bundled_model_dir(), seq.calib, model=model)
     odo.hold = 2
     frame = {float(t): i for i, t in enumerate(seq.times)}
 
@@ -73,12 +74,13 @@ def test_the_runtime_holds_the_weighted_pose_and_a_resumed_run_holds_on(small_sy
     uninterrupted run wrote: without the saved count frames 3 and 4 would take the classical pose."""
     seq = KittiSequence.open(small_synth)
     assert len(seq) == 6
+    model = StageModel(bundled_model_dir())  # one set of sessions; each run's state is its tracker's
     full, part = tmp_path / "full.txt", tmp_path / "part.txt"
-    run_sequence(seq, None, RunConfig(out=full), odometry=scripted(seq))
+    run_sequence(seq, None, RunConfig(out=full), odometry=scripted(seq, model))
     np.testing.assert_allclose(read_poses(full).poses, expected_poses(seq), atol=1e-5)
     assert [int(r.split()[-1]) for r in start_file(full).read_text().splitlines()] == LEFT
-    run_sequence(seq, None, RunConfig(out=part, end=3), odometry=scripted(seq))
-    run_sequence(seq, None, RunConfig(out=part, resume=True), odometry=scripted(seq))
+    run_sequence(seq, None, RunConfig(out=part, end=3), odometry=scripted(seq, model))
+    run_sequence(seq, None, RunConfig(out=part, resume=True), odometry=scripted(seq, model))
     assert part.read_text() == full.read_text()
     assert start_file(part).read_text() == start_file(full).read_text()
     # the weighted pose differs from the classical one by 0.1 m a pair: not holding would show
