@@ -668,3 +668,12 @@ done
 # choice held for a few pairs"): not shipped
 .venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 .venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
+# the same hold in the graph and the runtime (`pt_select_hold` 2), every held-out drive run with it
+# and, on the same CPU, with the bundled model as it ships: not shipped (static mean above the
+# classical mode's; docs/model-card.md, "The choice held for a few pairs")
+"$D3LVO" export --ckpt d3lvo_deploy/default_model/default.pt --out "$OUT/hold_2" --overwrite --set pt_select_hold=2
+for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "$OUT"/data/own_91? "$OUT"/data/demo_909; do
+  "$D3LVO" run "$d" --onnx "$OUT/hold_2" --backend onnxruntime --threads 1 --out "$OUT/eval/hold_2_$(basename "$d").txt" \
+    --overwrite
+  "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/hold_0_$(basename "$d").txt" --overwrite
+done
