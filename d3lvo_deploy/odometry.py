@@ -467,6 +467,8 @@ class Odometry:
         `start`, the saved `start_state`, where the graph `keeps_own_start`), and the motion guard
         compares the next pair with it (the two frames' stamps give its time). `hold_left`: the
         saved `hold_left` where the model holds its choice (`pt_select_hold`)."""
+        if isinstance(hold_left, bool) or not (isinstance(hold_left, (int, np.integer)) and 0 <= hold_left <= self.hold):
+            raise ValueError(f"prime's hold_left must be a whole number in 0..{self.hold} (pt_select_hold), not {hold_left!r}")
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         if start is not None:  # one 4x4, or `start_state`'s (K,4,4)
@@ -485,8 +487,6 @@ class Odometry:
             self.motion2 = start[0]
         # without a saved classical start, the classical solve starts where the weighted one does
         self.motion2_classical = start[1] if start is not None and len(start) > 1 else None
-        if not (isinstance(hold_left, (int, np.integer)) and 0 <= hold_left <= self.hold):
-            raise ValueError(f"prime's hold_left must be a whole number in 0..{self.hold} (pt_select_hold), not {hold_left!r}")
         self.hold_left = int(hold_left)
         self.frames += 1
 

@@ -664,10 +664,13 @@ done
   --score "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/demo_909 "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
 # the choice with a memory (the weighted pose held for a few pairs after each pair it is kept on,
 # or while frame t's scan or the network's distrust still speaks for it), chosen on the validation
-# drives and scored on the held-out traffic drives from the same records (docs/model-card.md, "The
-# choice held for a few pairs"): not shipped
+# drives from the same records (docs/model-card.md, "The choice held for a few pairs"), and each
+# static held-out drive's replay: not shipped
 .venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/val_static* "$OUT"/data/val_traffic*
 .venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$OUT"/data/traffic_3?? "$OUT"/data/own_91?
+for d in "$OUT"/data/static_2?? "$OUT"/data/traffic_318; do
+  .venv/bin/python scripts/selection_rules.py --quick --cache "$OUT/selcache" "$d"
+done
 # the same hold in the graph and the runtime (`pt_select_hold` 2), every held-out drive run with it
 # and, on the same CPU, with the bundled model as it ships: not shipped (static mean above the
 # classical mode's; docs/model-card.md, "The choice held for a few pairs")
@@ -676,4 +679,9 @@ for d in "$OUT"/data/heldout_?? "$OUT"/data/static_2?? "$OUT"/data/traffic_3?? "
   "$D3LVO" run "$d" --onnx "$OUT/hold_2" --backend onnxruntime --threads 1 --out "$OUT/eval/hold_2_$(basename "$d").txt" \
     --overwrite
   "$D3LVO" run "$d" --backend onnxruntime --threads 1 --out "$OUT/eval/hold_0_$(basename "$d").txt" --overwrite
+  for h in hold_2 hold_0; do
+    "$D3LVO" eval --gt "$d/poses.txt" --est "$OUT/eval/${h}_$(basename "$d").txt" --json
+  done
 done
+"$D3LVO" run ../shared/data/kitti_raw_snippet/sequences/r0926 --onnx "$OUT/hold_2" --backend onnxruntime \
+  --out "$OUT/eval/hold_2_real.txt" --overwrite

@@ -197,6 +197,7 @@ def test_resume_restores_the_start_a_graph_keeps_of_its_own(which, small_synth, 
     previous pose (`pt_classical_chain`, `scan_judge_model`) is fed that pose (`classical_next`)
     and saves both starts on each line."""
     from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.geometry import change_frame
     from d3lvo_deploy.pipeline import start_file
 
     model = bundled_model_dir() if which == "bundled" else request.getfixturevalue("scan_judge_model")[1]
@@ -208,19 +209,29 @@ def test_resume_restores_the_start_a_graph_keeps_of_its_own(which, small_synth, 
     odo.model.run = lambda stage, feeds: (fed.append(feeds.get("classical_start", feeds.get("init_pose")))
                                           if stage in ("flowpose", "classical") and "classical_pose" not in feeds
                                           else None, run(stage, feeds))[1]
-    starts = []
+    starts, kept = [], []
     for i in range(len(seq)):
         odo.step(seq.image(i), seq.scan(i))
         if i:  # the runtime starts the next pair where the graph says, not from the kept pose's motion
             out = odo.last["flowpose"]
             want = [out["start_next"][0]] + ([out["classical_next"][0]] if odo.chains_classical else [])
             np.testing.assert_allclose(odo.start_state(), np.stack(want), atol=1e-7)
+            if odo.hold:  # the graph says which pose it kept, and the runtime holds the weighted one
+                kept.append(bool(out["select_kept"][0] > 0.5))
+                np.testing.assert_allclose(out["matrix"][0], out["start_next" if kept[-1] else "classical_next"][0],
+                                           atol=1e-6)
+                used = out["start_next"][0] if kept[-1] or kept[-2:-1] == [True] else out["classical_next"][0]
+                np.testing.assert_allclose(odo.relative, change_frame(used.astype(np.float64), seq.calib.T_cam0_cam2),
+                                           atol=1e-6)
             if i > 1:  # the classical solve started where the previous pair left it
                 np.testing.assert_allclose(fed[-1][0][:3], starts[-1][:len(odo.start_state()) * 12].reshape(-1, 3, 4)[-1],
                                            atol=1e-7)
         # (and, where the model holds its choice, `pt_select_hold`, the count left at the end)
         starts.append(np.r_[odo.start_state()[:, :3].reshape(-1), [odo.hold_left] if odo.hold else []])
     assert len(fed) == len(seq) - 1
+    print("weighted pose kept by the graph on pairs", kept)
+    if odo.hold:  # `scan_judge_model` holds 1 pair: a kept pair followed by one it did not keep
+        assert any(a and not b for a, b in zip(kept, kept[1:])), kept
     if odo.chains_classical:  # the two starts differ, so feeding the weighted one would show
         assert max(np.abs(s[:12] - s[12:24]).max() for s in starts) > 1e-6
     full, part = tmp_path / "full.txt", tmp_path / "part.txt"

@@ -18,8 +18,8 @@ from models.config import D3LVOConfig
 
 
 def test_hold_step_keeps_the_weighted_pose_on_the_pairs_after_each_kept_one():
-    """Traced by hand with hold 2: a kept pair starts the count again, so two kept pairs three
-    apart hold on without a gap, and the count runs out two pairs after the last."""
+    """Traced by hand with hold 2: a kept pair starts the count again, so kept pairs two apart
+    hold on without a gap, and the count runs out two pairs after the last."""
     kept = [False, True, False, False, False, True, False, True, False, False, False]
     want = [False, True, True, True, False, True, True, True, True, True, False]
     left, used = 0, []

@@ -47,3 +47,22 @@ def test_hold_and_latch_by_hand(rules):
     other = [pair(scan_w=0.95), pair(scan_w=0.95)]
     assert [latch(other, i) for i in range(len(other))] == [False, False]
     assert latch(drive, 4) and not latch(drive, 5)
+
+
+def test_held_after_is_what_the_runtime_holds(rules):
+    """The replay's rule (the weighted pose where any of the last h + 1 pairs kept it) against the
+    runtime's count (`d3lvo_deploy.selection.hold_step`, `pt_select_hold`) on random choices."""
+    import numpy as np
+
+    from d3lvo_deploy.selection import hold_step
+
+    rng = np.random.default_rng(0)
+    for hold in (1, 2, 4):
+        choice = [bool(c) for c in rng.random(60) < 0.15]
+        rule = rules.held_after(lambda ps, i: ps[i], hold)
+        left, used = 0, []
+        for kept in choice:
+            use, left = hold_step(kept, left, hold)
+            used.append(use)
+        assert used == [rule(choice, i) for i in range(len(choice))]
+        assert used != choice  # the hold engaged
