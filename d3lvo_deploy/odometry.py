@@ -28,7 +28,7 @@ from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                      finest_level, point_config, solver_feeds, textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
-from .selection import SELECT_KEPT_OUTPUT, hold_step
+from .selection import SELECT_KEPT_OUTPUT, held_pose
 
 STAGES = ("project", "completion", "encoder", "flowpose")
 # a frame's stage that runs on another thread beside those (`FrameTiming.beside`), as the tables name it
@@ -385,8 +385,8 @@ class Odometry:
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
             start = out.get("start_next")
-            if self.hold:
-                A2 = self._held(A2, out)
+            if self.hold:  # the weighted pose on the `hold` pairs after one whose graph kept it
+                A2, self.hold_left = held_pose(out, self.hold_left, self.hold)
             A2, held = self._guarded(A2, enc.get("stamp"))
             self.relative = change_frame(A2, self.calib.T_cam0_cam2)
             before, self.pose = self.pose, self.pose @ self.relative
@@ -405,14 +405,6 @@ class Odometry:
         self._prev = enc
         self.frames += 1
         return self.pose.copy()
-
-    def _held(self, A2: np.ndarray, out: dict[str, np.ndarray]) -> np.ndarray:
-        """The pair's kept motion with the choice's memory (`hold_step`): the weighted pose
-        (`start_next`) on the `hold` pairs after one whose graph kept it."""
-        kept = bool(np.asarray(out[SELECT_KEPT_OUTPUT]).reshape(-1)[0] > 0.5)
-        use, self.hold_left = hold_step(kept, self.hold_left, self.hold)
-        weighted = out["start_next"][0].astype(np.float64)
-        return weighted if use and not kept and np.all(np.isfinite(weighted)) else A2
 
     @property
     def _prev_stamp(self) -> float | None:

@@ -5,6 +5,8 @@ under the thresholds on the next; the graph sees one pair, so the runtime keeps 
 
 from __future__ import annotations
 
+import numpy as np
+
 # the flow+pose graph's output where the model holds its choice: (1,) 1 where the pair's kept pose
 # (`matrix`) is the weighted one (`start_next`), 0 where it is the classical one
 SELECT_KEPT_OUTPUT = "select_kept"
@@ -19,3 +21,14 @@ def hold_step(kept: bool, left: int, hold: int) -> tuple[bool, int]:
     if left > 0:
         return True, left - 1
     return False, 0
+
+
+def held_pose(out: dict, left: int, hold: int) -> tuple[np.ndarray, int]:
+    """(the pair's kept motion (4,4) float64, the count after it) from a flow+pose graph's outputs
+    (`matrix`, `start_next`, `SELECT_KEPT_OUTPUT`, batch row 0): `matrix`, or on a held pair the
+    weighted pose `start_next` where it is finite. The runtime, `models.predict` and parity alike."""
+    matrix = np.asarray(out["matrix"][0], np.float64)
+    kept = bool(np.asarray(out[SELECT_KEPT_OUTPUT]).reshape(-1)[0] > 0.5)
+    use, left = hold_step(kept, left, hold)
+    weighted = np.asarray(out["start_next"][0], np.float64)
+    return (weighted if use and not kept and np.all(np.isfinite(weighted)) else matrix), left

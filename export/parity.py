@@ -22,7 +22,7 @@ from d3lvo_deploy.odometry import clean_scan
 from d3lvo_deploy.onnx_model import SessionConfig, StageModel, camera_inputs, flowpose_feeds
 from d3lvo_deploy.points import (CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
                                  point_config, solver_feeds)
-from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, hold_step
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, held_pose
 from d3lvo_deploy.sequence import KittiSequence
 from models.checkpoint import build_model, load_checkpoint
 from models.config import SOLVER_KEYS, D3LVOConfig
@@ -136,12 +136,12 @@ def run_parity(ckpt: str | Path, onnx_dir: str | Path, seq_dir: str | Path | Non
     left = {"t": 0, "o": 0, "f": 0}
 
     def kept(side: str, out: dict) -> np.ndarray:
-        matrix = np.asarray(out["matrix"][0], np.float64)
         if not cfg.pt_select_hold:
-            return matrix
-        use, left[side] = hold_step(bool(np.asarray(out[SELECT_KEPT_OUTPUT]).reshape(-1)[0] > 0.5), left[side],
-                                    cfg.pt_select_hold)
-        return np.asarray(out["start_next"][0], np.float64) if use else matrix
+            return np.asarray(out["matrix"][0], np.float64)
+        names = ("matrix", "start_next", SELECT_KEPT_OUTPUT)
+        pose, left[side] = held_pose({k: np.asarray(torch.as_tensor(out[k]).double()) for k in names}, left[side],
+                                     cfg.pt_select_hold)
+        return pose
 
     def with_classical(feeds: dict, motion: np.ndarray, classical: np.ndarray | None) -> dict:
         if chained:

@@ -11,7 +11,7 @@ from d3lvo_deploy.cold_start import ColdStartConfig
 from d3lvo_deploy.geometry import accumulate, change_frame
 from d3lvo_deploy.odometry import cold_start_motion
 from d3lvo_deploy.points import CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, solver_feeds
-from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, hold_step
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, held_pose
 from d3lvo_deploy.sequence import KittiSequence
 
 from .data import FrameLoader
@@ -33,7 +33,7 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
     prev = solver_prev = None
     motion = torch.eye(4, device=dev)[None]  # image_2 motion of the previous pair: the GN head's start
     classical = None  # `pt_classical_chain`: the previous classical pose, the classical solve's start
-    hold_left = 0  # `pt_select_hold`: pairs left on which the weighted pose is kept (the runtime's `hold_step`)
+    hold_left = 0  # `pt_select_hold`: pairs left on which the weighted pose is kept (the runtime's `held_pose`)
     rel = []
     for i in range(start, end):
         rgb = torch.from_numpy(loader.rgb(i)).permute(2, 0, 1)[None].to(dev)
@@ -54,8 +54,8 @@ def predict_sequence(model, seq_dir: str | Path, start: int = 0, end: int | None
             out = model.flow_pose(prev[0], cur[0], prev[1], prev[2], cur[2], K, motion, prev[3], solver, cur[1])
             A2 = out["matrix"][0].double().cpu().numpy()
             if model.cfg.pt_select_hold:
-                use, hold_left = hold_step(bool(out[SELECT_KEPT_OUTPUT][0] > 0.5), hold_left, model.cfg.pt_select_hold)
-                A2 = out["start_next"][0].double().cpu().numpy() if use else A2
+                kept = {k: out[k].double().cpu().numpy() for k in ("matrix", "start_next", SELECT_KEPT_OUTPUT)}
+                A2, hold_left = held_pose(kept, hold_left, model.cfg.pt_select_hold)
             motion = out.get("start_next", out["matrix"])  # the next pair's start (`pt_select`: the weighted pose)
             classical = out.get(CLASSICAL_NEXT_OUTPUT)
             rel.append(change_frame(A2, seq.calib.T_cam0_cam2))

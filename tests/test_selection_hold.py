@@ -12,7 +12,7 @@ from d3lvo_deploy.odometry import Odometry
 from d3lvo_deploy.onnx_model import StageModel
 from d3lvo_deploy.pipeline import RunConfig, run_sequence, start_file
 from d3lvo_deploy.poses import read_poses
-from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, hold_step
+from d3lvo_deploy.selection import SELECT_KEPT_OUTPUT, held_pose, hold_step
 from d3lvo_deploy.sequence import KittiSequence
 from models.config import D3LVOConfig
 
@@ -28,6 +28,22 @@ def test_hold_step_keeps_the_weighted_pose_on_the_pairs_after_each_kept_one():
         used.append(use)
     assert used == want and left == 0
     assert [hold_step(k, 0, 0)[0] for k in kept] == kept  # hold 0: the graph's choice alone
+
+
+def test_a_held_pair_takes_the_weighted_pose_only_where_it_is_finite():
+    """`held_pose` on graph outputs: the weighted pose on a held pair, the kept `matrix` where the
+    weighted pose is not finite (the count still runs down), `matrix` on a pair the graph kept."""
+    out = lambda kept, weighted: {"matrix": CLASSICAL[None], "start_next": weighted[None],  # noqa: E731
+                                  SELECT_KEPT_OUTPUT: np.array([float(kept)])}
+    pose, left = held_pose(out(False, WEIGHTED), 2, 2)
+    np.testing.assert_array_equal(pose, WEIGHTED)
+    assert left == 1
+    pose, left = held_pose(out(False, np.full((4, 4), np.nan)), 1, 2)
+    np.testing.assert_array_equal(pose, CLASSICAL)
+    assert left == 0
+    pose, left = held_pose(out(True, WEIGHTED), 0, 2)
+    np.testing.assert_array_equal(pose, CLASSICAL)  # the graph's own `matrix` where it kept the weighted pose
+    assert left == 2
 
 
 def test_a_hold_needs_a_choice_to_hold():
