@@ -124,7 +124,8 @@ def _saved_starts(path: Path, count: int, per_line: int = 1,
         if len(rows) < count:
             return None
         T = np.tile(np.eye(4), (count, per_line, 1, 1))
-        T[:, :, :3, :] = np.array([r[:12 * per_line] for r in rows[:count]], dtype=np.float64).reshape(count, per_line, 3, 4)
+        matrices = np.array([r[:12 * per_line] for r in rows[:count]], dtype=np.float64)
+        T[:, :, :3, :] = matrices.reshape(count, per_line, 3, 4)
         left = np.array([int(r[-1]) for r in rows[:count]]) if holds else None
         if left is not None and (left < 0).any():
             return None
@@ -332,7 +333,8 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                       previous_stamp=float(seq.times[k - 1]) if len(done) >= 2 else None)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
                 last = _start_line(odo)  # identity starts (and no hold) on the rows the run cannot know
-                rest = " ".join([format_kitti(np.eye(4))] * len(odo.start_state())) + (" 0" if getattr(odo, "hold", 0) else "") + "\n"
+                rest = " ".join([format_kitti(np.eye(4))] * len(odo.start_state()))
+                rest += (" 0" if getattr(odo, "hold", 0) else "") + "\n"
                 starts.write(rest * (len(done) - 1) + last)
         t_wall0 = time.perf_counter()
         pipelined = plan.depth > 1
