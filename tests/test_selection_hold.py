@@ -1,5 +1,6 @@
 """The pose choice's memory (`pt_select_hold`): the weighted pose held on the pairs after each one
-the graph keeps it on, in the runtime, through --resume, and in the exported graph."""
+the graph keeps it on, in the runtime and through --resume (an exported graph that holds:
+`scan_judge_model` in tests/test_point_solver.py and tests/test_runtime.py)."""
 
 from __future__ import annotations
 
