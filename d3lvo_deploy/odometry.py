@@ -384,7 +384,6 @@ class Odometry:
             A2 = out["matrix"][0].astype(np.float64)
             if not np.all(np.isfinite(A2)):
                 raise FloatingPointError(f"the network returned a non-finite pose at frame {self.frames}")
-            start = out.get("start_next")
             if self.hold:  # the weighted pose on the `hold` pairs after one whose graph kept it
                 A2, self.hold_left = held_pose(out, self.hold_left, self.hold)
             A2, held = self._guarded(A2, enc.get("stamp"))
@@ -393,6 +392,7 @@ class Odometry:
             # from the poses, exactly as `prime` does on a resumed run (which reads them back), so
             # that an interrupted and resumed run starts every pair where an uninterrupted one does
             self.motion2 = self._motion_between(before, self.pose)
+            start = out.get("start_next")
             if not held and start is not None and np.all(np.isfinite(start)):
                 self.motion2 = start[0].astype(np.float64)
             classical = out.get(CLASSICAL_NEXT_OUTPUT)

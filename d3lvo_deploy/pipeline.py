@@ -135,11 +135,15 @@ def _saved_starts(path: Path, count: int, per_line: int = 1,
     return T, left
 
 
-def _start_line(odo) -> str:
+def _start_line(state: np.ndarray, hold_left: int | None = None) -> str:
     """One line of the start file: `Odometry.start_state`'s matrices, 12 numbers each, then
-    `hold_left` where the model holds its choice."""
-    hold = f" {odo.hold_left}" if getattr(odo, "hold", 0) else ""
-    return " ".join(format_kitti(T) for T in odo.start_state()) + hold + "\n"
+    `Odometry.hold_left` where the model holds its choice (`_hold_left`)."""
+    return " ".join(format_kitti(T) for T in state) + ("" if hold_left is None else f" {hold_left}") + "\n"
+
+
+def _hold_left(odo) -> int | None:
+    """The tracker's count of pairs left to hold (`pt_select_hold`), None where it holds nothing."""
+    return odo.hold_left if getattr(odo, "hold", 0) else None
 
 
 def _open_starts(odo, out: Path, done: int, stack: ExitStack):
@@ -153,7 +157,7 @@ def _open_starts(odo, out: Path, done: int, stack: ExitStack):
         except OSError:
             pass
         return None, None
-    saved = _saved_starts(path, done, len(odo.start_state()), bool(getattr(odo, "hold", 0))) if done else None
+    saved = _saved_starts(path, done, len(odo.start_state()), _hold_left(odo) is not None) if done else None
     if done > 1 and saved is None:
         warnings.warn(f"{path}: the solver's saved starts are missing or short, so the resumed run starts from "
                       "the last poses' motion and may differ slightly from an uninterrupted run")
@@ -332,10 +336,10 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                       done[-2] if len(done) >= 2 else None, **extra, stamp=float(seq.times[k]),
                       previous_stamp=float(seq.times[k - 1]) if len(done) >= 2 else None)
             if starts is not None and saved is None:  # the rows line up with the poses again, the last the start used
-                last = _start_line(odo)  # identity starts (and no hold) on the rows the run cannot know
-                rest = " ".join([format_kitti(np.eye(4))] * len(odo.start_state()))
-                rest += (" 0" if getattr(odo, "hold", 0) else "") + "\n"
-                starts.write(rest * (len(done) - 1) + last)
+                state, left = odo.start_state(), _hold_left(odo)
+                # identity starts (and no hold) on the rows the run cannot know
+                rest = [(np.tile(np.eye(4), (len(state), 1, 1)), None if left is None else 0)] * (len(done) - 1)
+                starts.write("".join(_start_line(*row) for row in [*rest, (state, left)]))
         t_wall0 = time.perf_counter()
         pipelined = plan.depth > 1
         deep = pipelined and plan.depth == 3  # the reader also completes and encodes the frame
@@ -407,7 +411,7 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
                     recorder.frame(i, pose, points, view, None if view is None else odo.pre.K)
                 line = format_kitti(pose) if rc.fmt == "kitti" else format_tum(pose, float(seq.times[i]))
                 if starts is not None:  # before the pose: a run stopped between the two resumes exactly
-                    starts.write(_start_line(odo))
+                    starts.write(_start_line(odo.start_state(), _hold_left(odo)))
                 fh.write(line + "\n")
                 fh.flush()
                 for k, v in odo.last_timing.rows.items():  # the time beside (another thread) not in the total

@@ -34,8 +34,9 @@ scan's pass at 0.7). And what ships with a memory (`as it ships`: the bundled mo
 `pt_select` 0.003, with the cap and the scan's pass): the weighted pose held on for H more pairs
 after each pair it keeps it on (what `pt_select_hold` H does in the graph and the runtime), or
 held for as long as frame t's scan fits it at most v times worse than the classical pose, or as
-long as the network distrusts at least a share of the points (`latched`). `--cache DIR` keeps each drive's record (keyed by the checkpoint's hash and whether
-`--quick`), so that scoring the rules on other drives, or again, runs no network twice;
+long as the network distrusts at least a share of the points (`latched`). `--cache DIR` keeps
+each drive's record (keyed by the checkpoint's hash and whether `--quick`), so that scoring the
+rules on other drives, or again, runs no network twice;
 the key names the drive's folder, not its content: empty DIR when a drive is rendered again.
 """
 
