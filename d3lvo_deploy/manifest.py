@@ -10,6 +10,7 @@ import hashlib
 import json
 from pathlib import Path
 
+from .config_values import describe, fits
 from .errors import D3LVOInputError
 
 MANIFEST_FORMAT = "d3lvo-onnx"
@@ -20,6 +21,14 @@ STAGES = ("completion", "encoder", "flowpose")  # and, for the point solver, "cl
 # a stage may also carry a graph of the same inputs and outputs for one engine, under that engine's
 # name: the flow+pose stage's `onnxruntime` graph takes its bilinear samples as Gathers (models/sampling.py)
 ENGINE_GRAPHS = ("onnxruntime",)
+# the `model_config` entries the runtime reads, each with a value of its kind (`config_values.fits`):
+# a hand-edited or truncated manifest is one error naming the entry when the folder is opened,
+# not a traceback at the first frame; the point solver's only in a point-solver model's, the
+# optional ones only where present (older exports lack them, and the runtime takes their defaults)
+RUNTIME_CONFIG = {"height": 1, "width": 1, "min_depth": 1.0, "max_depth": 1.0, "rgb_mean": [1.0], "rgb_std": [1.0]}
+POINT_SOLVER_CONFIG = {"pt_iters": [1], "pt_stop": 1.0, "pt_damping": 1.0, "pt_min_gradient": 1.0, "pt_capacity": 1}
+OPTIONAL_CONFIG = {"pt_scale_every": 1, "pt_median_stride": 1, "pt_refine": 0, "pt_affine": False,
+                   "pt_fine_restart": 0.0, "pt_restart_depth": 0.0, "pt_scan_gate": 0.0, "pt_select_hold": 0}
 
 
 def for_engine(st: dict, backend: str) -> dict:
@@ -74,6 +83,7 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
     missing = [k for k in ("model_config", "depth_input", "input", "opset") if k not in m]
     if missing:  # what the runtime and the reduced-precision conversion read
         raise D3LVOInputError(path, f"has no {missing[0]!r}: re-export the checkpoint with `d3lvo export`")
+    check_model_config(m, path)
     stages = m.get("stages", {})
     for name in ("encoder", "flowpose"):
         if name not in stages:
@@ -96,3 +106,34 @@ def load_manifest(model_dir: str | Path, verify_hashes: bool = True) -> dict:
             if verify_hashes and sha256_file(f) != entry["sha256"]:
                 raise D3LVOInputError(f, "sha256 differs from manifest.json (modified or from another export)")
     return m
+
+
+def check_model_config(m: dict, path: Path) -> None:
+    """The input size and the `model_config` entries the runtime reads, each of its kind; the size
+    the same in both and in the encoder's graph inputs."""
+    size = m["input"]
+    if not (isinstance(size, dict) and all(fits(size.get(k), 1) and size[k] > 0 for k in ("height", "width"))):
+        raise D3LVOInputError(path, "'input' must give the network's height and width as whole numbers above 0: "
+                                    "re-export the checkpoint with `d3lvo export`")
+    cfg = m["model_config"]
+    if not isinstance(cfg, dict):
+        raise D3LVOInputError(path, "'model_config' must be the exported model's settings (a JSON object)")
+    wanted = dict(RUNTIME_CONFIG, **(POINT_SOLVER_CONFIG if cfg.get("pose_head") == "points" else {}))
+    for key, like in {**wanted, **{k: v for k, v in OPTIONAL_CONFIG.items() if k in cfg}}.items():
+        if key not in cfg:
+            raise D3LVOInputError(path, f"model_config has no {key!r}: re-export the checkpoint with `d3lvo export`")
+        ok = fits(cfg[key], like) and (not isinstance(like, list) or len(cfg[key]) > 0)
+        if not ok:
+            kind = f"a list of {describe(like)}" if isinstance(like, list) else describe(like)
+            raise D3LVOInputError(path, f"model_config {key!r} is {cfg[key]!r}, it must be {kind}: re-export the "
+                                        "checkpoint with `d3lvo export`")
+    for key in ("height", "width"):
+        if cfg[key] != size[key]:
+            raise D3LVOInputError(path, f"model_config {key!r} is {cfg[key]}, its 'input' {key} {size[key]}: "
+                                        "the manifest was edited or mixed from two exports")
+    rgb = next((i for i in m.get("stages", {}).get("encoder", {}).get("inputs", []) if i.get("name") == "rgb_norm"), None)
+    shape = list(rgb.get("shape", [])[2:]) if rgb is not None else []
+    if all(isinstance(d, int) for d in shape) and len(shape) == 2 and shape != [size["height"], size["width"]]:
+        raise D3LVOInputError(path, f"'input' is {size['width']}x{size['height']}, the encoder's graph takes "
+                                    f"{shape[1]}x{shape[0]}: the manifest was edited or mixed from "
+                                    "two exports")

@@ -1,6 +1,7 @@
 """ONNX export: standard ops only, checker, manifest, parity with torch, and clear errors."""
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -214,7 +215,7 @@ def test_parity_at_paper_resolution(tmp_path):
     assert rep.passed, rep.to_dict()
 
 
-def test_tampered_and_mismatched(exported, tmp_path):
+def test_tampered_and_mismatched(exported, small_synth, tmp_path):
     ck, out, _ = exported
     stages = load_manifest(out)["stages"]
     assert set(stages) == {"completion", "encoder", "flowpose"}
@@ -243,6 +244,28 @@ def test_tampered_and_mismatched(exported, tmp_path):
     (bad / "manifest.json").write_text(json.dumps(m))
     with pytest.raises(D3LVOInputError, match="manifest.json: has no 'model_config'"):
         StageModel(bad)
+    # an entry of model_config the runtime reads, damaged: one line naming it when the folder is
+    # opened, before a run writes anything (else a TypeError or KeyError at the first frame)
+    m = json.loads((out / "manifest.json").read_text())
+    h, w = m["input"]["height"], m["input"]["width"]
+    for key, value, words in (("height", str(h), f"model_config 'height' is '{h}', it must be a whole number"),
+                              ("width", None, "model_config has no 'width'"),
+                              ("height", h + 8, f"model_config 'height' is {h + 8}, its 'input' height {h}"),
+                              ("rgb_std", 0.2, "model_config 'rgb_std' is 0.2, it must be a list of numbers"),
+                              ("max_depth", "far", "model_config 'max_depth' is 'far', it must be a finite number")):
+        cfg = dict(m["model_config"], **{key: value})
+        if value is None:
+            del cfg[key]
+        (bad / "manifest.json").write_text(json.dumps({**m, "model_config": cfg}))
+        with pytest.raises(D3LVOInputError, match=f"manifest.json: {re.escape(words)}"):
+            StageModel(bad)
+    both = {**m, "input": {**m["input"], "width": w + 32}, "model_config": {**m["model_config"], "width": w + 32}}
+    (bad / "manifest.json").write_text(json.dumps(both))
+    with pytest.raises(D3LVOInputError, match=f"'input' is {w + 32}x{h}, the encoder's graph takes {w}x{h}"):
+        StageModel(bad)
+    r = runner.invoke(app, ["run", str(small_synth), "--onnx", str(bad), "--out", str(tmp_path / "damaged.txt")])
+    assert r.exit_code == 1 and "manifest.json" in r.output and "Traceback" not in r.output, r.output
+    assert not list(tmp_path.glob("damaged.txt*"))  # nothing written
     other, _ = _ckpt(tmp_path, name="other.pt", mode="rgb")
     with pytest.raises(D3LVOInputError, match="another model config"):
         run_parity(other, out, frames=2)
