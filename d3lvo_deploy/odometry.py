@@ -99,9 +99,9 @@ def rigid_pose(pose, what: str) -> np.ndarray:
 
 
 def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
-    """Drop non-finite points. An empty (or None) scan is allowed: the frame then has no LiDAR
-    depth and the completion stage works from the image alone (documented fallback), with a
-    warning."""
+    """Drop points with a non-finite x, y or z (a non-finite reflectance becomes 0). An empty (or
+    None) scan is allowed: the frame then has no LiDAR depth and the completion stage works from
+    the image alone (documented fallback), with a warning."""
     if points is None:
         points = np.zeros((0, 4), np.float32)
     try:
@@ -121,6 +121,11 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
         warnings.warn(f"{source}: dropped {int((~finite).sum())} of {len(pts)} points with NaN/inf", ScanWarning,
                       stacklevel=3)
         pts = pts[finite]
+    if pts.shape[1] > 3 and not np.isfinite(pts[:, 3:]).all():
+        # reflectance and further columns are read by nothing, but the view cull's GEMM takes whole
+        # rows (`rows_in_view`: 0 x NaN is NaN), so a NaN there would drop the point: 0 in a copy
+        pts = pts.copy()
+        pts[:, 3:][~np.isfinite(pts[:, 3:])] = 0.0
     if len(pts) == 0:
         warnings.warn(f"{source}: no LiDAR points; this frame runs without depth input, and a point solver, which "
                       "tracks this frame's points into the next one, keeps that pair's starting motion (the last "

@@ -358,6 +358,33 @@ def test_scan_fallbacks_warn(small_model, small_synth):
         odo.step(np.zeros((100, 200, 3), np.uint8), seq.scan(3))
 
 
+def test_nan_reflectance_is_read_as_zero(small_model, small_synth):
+    """Nothing reads a scan's reflectance, but the view cull multiplies whole rows (0 x NaN is NaN):
+    a scan whose reflectance is NaN or inf gives the poses of the same scan with reflectance 0, on
+    the network and on the direct tracker, without a warning; the caller's scan stays as given."""
+    from d3lvo_deploy.direct import DirectOdometry
+
+    _, onnx_dir = small_model
+    seq = KittiSequence.open(small_synth)
+    scans = [seq.scan(i) for i in range(3)]
+    for scan in scans:
+        assert scan[:, 3].any()  # a reflectance to lose
+    broken = [s.copy() for s in scans]
+    for s in broken:
+        s[::2, 3], s[1::2, 3] = np.nan, np.inf
+    zero = [np.concatenate([s[:, :3], np.zeros_like(s[:, 3:])], 1) for s in scans]
+    for make in (lambda: Odometry(onnx_dir, seq.calib), lambda: DirectOdometry(seq.calib)):
+        poses = {}
+        for name, given in (("zero", zero), ("broken", broken)):
+            tracker = make()
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                poses[name] = np.array([tracker.step(seq.image(i), given[i]) for i in range(3)])
+        assert np.linalg.norm(poses["zero"][-1][:3, 3]) > 0.1  # it moved
+        np.testing.assert_array_equal(poses["broken"], poses["zero"])
+    assert np.isnan(broken[0][0, 3]) and np.isinf(broken[0][1, 3])  # the caller's arrays untouched
+
+
 @pytest.mark.parametrize("breakage, words", [
     (lambda d: (d / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n"), ["calib.txt", "P2"]),
     (lambda d: (d / "calib.txt").write_text((d / "calib.txt").read_text().replace("Tr:", "Xx:")), ["calib.txt", "LiDAR extrinsic"]),
