@@ -35,7 +35,7 @@ from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_sa
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .motion_guard import MotionGuard, guard_motion, scaled_motion
 from .odometry import (FrameTiming, as_calib, calib_source, check_first_frame, check_frame_size, check_image,
-                       clean_scan, rigid_pose)
+                       check_texture, clean_scan, rigid_pose)
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -389,6 +389,7 @@ class DirectOdometry:
         scan = rows_in_view(scan, P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
+        check_texture(X, scan, self.cfg.points.min_gradient, self.scan_source)
         depth = sparse_depth(scan, P, w, h) if self.cfg.reads_scan else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)

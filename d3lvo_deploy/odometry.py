@@ -133,6 +133,21 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
     return pts
 
 
+# with at least this many returns in view and none of them on texture, the image is blank: worth a word
+BLANK_IMAGE_RETURNS = 100
+
+
+def check_texture(textured: np.ndarray, in_view: np.ndarray | None, min_gradient: float, source: str) -> None:
+    """A warning where the scan's returns in view all land where the image has no texture (a
+    black, blank or overexposed frame): the solver then has no point to track, and the pairs with
+    this frame keep their starting motion, which a run would otherwise write without a word."""
+    if len(textured) == 0 and in_view is not None and len(in_view) >= BLANK_IMAGE_RETURNS:
+        image = source.removesuffix("'s scan") + "'s image" if source.endswith("'s scan") else "image"
+        warnings.warn(f"{image}: no texture where its {len(in_view)} LiDAR returns in view land (grey gradient above "
+                      f"{min_gradient:g}): black, blank or overexposed? The pairs with this frame keep their starting "
+                      "motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
+
+
 @dataclass
 class PreparedFrame:
     image: np.ndarray  # the camera image as read (the --viz panels show it)
@@ -300,6 +315,7 @@ class Odometry:
         if textured is not None:
             depth = sparse_depth(scan, self.calib.P_velo_to_image2, w, h) if self.takes_depth else None
             solver = SolverFrame.assemble(finest(), textured(), self.pyramid_levels, depth)
+            check_texture(solver.points, scan, self.points.min_gradient, self.scan_source)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
 
     def _textured(self, finest: Callable[[], np.ndarray], scan: np.ndarray) -> np.ndarray:

@@ -385,6 +385,34 @@ def test_nan_reflectance_is_read_as_zero(small_model, small_synth):
     assert np.isnan(broken[0][0, 3]) and np.isinf(broken[0][1, 3])  # the caller's arrays untouched
 
 
+def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
+    """A black frame mid-run (a camera fault) leaves the point solver nothing to track: the pairs
+    with it keep their starting motion (`motion2`, the constant-velocity start), and the tracker
+    says so, naming the frame; the bundled model and the direct tracker alike."""
+    from d3lvo_deploy.bundled import bundled_model_dir
+    from d3lvo_deploy.direct import DirectOdometry
+    from d3lvo_deploy.geometry import change_frame
+
+    seq = KittiSequence.open(small_synth)
+    for make in (lambda: Odometry(bundled_model_dir(), seq.calib), lambda: DirectOdometry(seq.calib)):
+        tracker = make()
+        rel = []
+        for i in range(3):
+            tracker.scan_source = f"frame {i}'s scan"
+            image = seq.image(i) if i < 2 else np.zeros_like(seq.image(i))
+            start = change_frame(tracker.motion2, seq.calib.T_cam0_cam2)  # where pair (i-1, i) starts
+            if i < 2:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error")
+                    tracker.step(image, seq.scan(i))
+            else:
+                with pytest.warns(ScanWarning, match="frame 2's image: no texture where its .* LiDAR returns"):
+                    tracker.step(image, seq.scan(i))
+            rel.append(tracker.relative.copy())
+        assert np.linalg.norm(rel[1][:3, 3]) > 0.1  # it moved
+        np.testing.assert_allclose(rel[2], start, atol=1e-6)  # the black frame's pair: its starting motion
+
+
 @pytest.mark.parametrize("breakage, words", [
     (lambda d: (d / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n"), ["calib.txt", "P2"]),
     (lambda d: (d / "calib.txt").write_text((d / "calib.txt").read_text().replace("Tr:", "Xx:")), ["calib.txt", "LiDAR extrinsic"]),
