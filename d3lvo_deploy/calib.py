@@ -143,13 +143,19 @@ FEW_IN_VIEW = 0.02
 # a scan whose median return is farther than this is not in metres: a 64-beam scan of a street
 # has its median within tens of metres, and long-range LiDARs within ~100
 MAX_MEDIAN_RANGE = 500.0
+# no LiDAR return lies this far (m); a float64 file, or another layout, read as float32 x, y, z, r puts
+# a quarter or more of its values there (the low halves of doubles read as floats)
+FAR_OUT = 1e4
+FAR_OUT_SHARE = 0.01
 
 
-def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: str | Path, frame: str) -> None:
+def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: str | Path, frame: str,
+              scan_where: str | Path | None = None) -> None:
     """The calibration against one frame's image size and scan, before a run: a principal point
     outside the image (images of another size), or a scan of which no return lands in the image
     (the LiDAR extrinsic of another rig), is an error; a principal point far from the centre or
-    few returns in view a warning. Either would otherwise run to a wrong trajectory without a word."""
+    few returns in view a warning. Either would otherwise run to a wrong trajectory without a word.
+    A scan that is not float32 metres is an error naming `scan_where` (the scan's file, where known)."""
     from .projection import PROJECTION_MIN_DEPTH, project_points
 
     cx, cy = calib.P2[0, 2] / calib.P2[2, 2], calib.P2[1, 2] / calib.P2[2, 2]
@@ -164,10 +170,15 @@ def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: st
     pts = pts[np.isfinite(pts).all(1)]
     if len(pts) < 1000:  # an empty or sparse scan: its own warning, and too few to judge by
         return
-    reach = float(np.median(np.linalg.norm(pts, axis=1)))
+    reach = float(np.median(np.linalg.norm(pts.astype(np.float64), axis=1)))  # float64: no overflow on garbage
     if reach > MAX_MEDIAN_RANGE:
-        raise D3LVOInputError(None, f"the median range of frame {frame}'s {len(pts)} LiDAR returns is {reach:.0f} m: "
-                                     "points must be in metres (millimetres or centimetres?)")
+        raise D3LVOInputError(scan_where, f"the median range of frame {frame}'s {len(pts)} LiDAR returns is "
+                                          f"{reach:.0f} m: points must be in metres (millimetres or centimetres?)")
+    far = float((np.abs(pts) > FAR_OUT).any(axis=1).mean())
+    if far > FAR_OUT_SHARE:
+        raise D3LVOInputError(scan_where, f"{far:.0%} of frame {frame}'s {len(pts)} LiDAR returns lie more than "
+                                          f"{FAR_OUT / 1000:.0f} km away: a scan must be float32 x, y, z, reflectance "
+                                          "in metres (a float64 file reads like this)")
     seen = len(project_points(pts, calib.P_velo_to_image2, width, height, PROJECTION_MIN_DEPTH)[2])
     if seen == 0:
         raise D3LVOInputError(where, f"none of the {len(pts)} LiDAR returns of frame {frame} lands in its {size} "

@@ -201,8 +201,9 @@ def check_recording_fit(seq: Recording, i: int, label: str | None = None) -> Non
     """The recording's calibration against frame i's image and scan (`calib.check_fit`), before
     any work: the trackers then skip their own first-frame check (`fit_checked`)."""
     image = seq.image(i)
+    scan_file = seq.scan_path(i) if hasattr(seq, "scan_path") else seq.root  # a file per scan, or the recording
     check_fit(seq.calib, image.shape[1], image.shape[0], seq.scan(i), getattr(seq, "calib_path", None) or seq.root,
-              label or seq.frame_names[i])
+              label or seq.frame_names[i], scan_file)
 
 
 def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc: SessionConfig = SessionConfig(),

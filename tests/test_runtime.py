@@ -133,7 +133,7 @@ def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
 
 def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_synth):
     """Inputs that would otherwise run to a wrong trajectory, NaN poses or a failure frames later
-    are one D3LVOInputError at the call: a transposed scan, a scan in millimetres, images of
+    are one D3LVOInputError at the call: a transposed scan, a scan in millimetres or in float64, images of
     another size than the calibration's, a LiDAR extrinsic that sees nothing, non-rigid or NaN
     poses for reset/prime, and wrong argument types."""
     from d3lvo_deploy.calib import Calib
@@ -146,6 +146,8 @@ def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_sy
     mm[:, :3] *= 1000.0
     cases = [(lambda: fresh().step(img, scan.T), "transposed"),
              (lambda: fresh().step(img, mm), "must be in metres"),
+             (lambda: fresh().step(img, scan.astype(np.float64).view(np.float32).reshape(-1, 4)),
+              "LiDAR returns lie more than 10 km away: a scan must be float32 x, y, z, reflectance"),
              (lambda: fresh().step(np.ascontiguousarray(img[:90, :300]), scan), "lies outside frame 0's 300x90 image"),
              (lambda: fresh(Calib(seq.calib.P2, np.eye(4))).step(img, scan), "none of the"),
              (lambda: fresh().step(None, scan), "got NoneType"),
@@ -418,6 +420,8 @@ def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
     (lambda d: (d / "calib.txt").write_text((d / "calib.txt").read_text().replace("Tr:", "Xx:")), ["calib.txt", "LiDAR extrinsic"]),
     (lambda d: (d / "image_2" / "000004.png").write_bytes(b"garbage"), ["000004.png", "--resume", "frames 0..3"]),
     (lambda d: (d / "velodyne" / "000002.bin").write_bytes(b"\0" * 10), ["000002.bin", "truncated"]),
+    (lambda d: np.fromfile(d / "velodyne" / "000000.bin", np.float32).astype(np.float64).tofile(
+        d / "velodyne" / "000000.bin"), ["000000.bin", "a float64 file reads like this"]),
     (lambda d: [(d / "velodyne" / "000003.bin").unlink(), (d / "image_2" / "000003.png").unlink()], ["missing frame"]),
 ])
 def test_cli_bad_input(small_model, small_synth, tmp_path, breakage, words):
