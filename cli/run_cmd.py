@@ -628,6 +628,10 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
             plot_trajectories(plot, {"estimate": est.poses}, title=f"{seq.root.name} (no ground truth)")
             console.print(f"plot written to {plot}", highlight=False)
         return None
+    if len(est) < 2:  # a run of one frame: written, but nothing to score
+        console.print(f"{len(est)} pose: too few to score against the ground truth (2 at least): no metrics",
+                      highlight=False)
+        return None
     stop = len(seq) if end is None else end
     g = gt.poses[start:stop]
     res = evaluate(Trajectory.from_poses(relative(g[0], g)), Trajectory.from_poses(est.poses), name=seq.root.name)

@@ -465,6 +465,19 @@ def test_cli_run_scores_with_gt_and_plots(small_model, small_synth, tmp_path):
     assert (tmp_path / "t.png").stat().st_size > 1000
 
 
+def test_cli_run_of_one_frame_with_ground_truth_writes_it_and_scores_nothing(small_model, small_synth, tmp_path):
+    """One frame is a run (its pose, identity, written; exit 0), and too short to score: said in a
+    line, no metrics, as a run without ground truth."""
+    _, onnx_dir = small_model
+    assert (small_synth / "poses.txt").is_file()
+    r = runner.invoke(app, ["run", str(small_synth), "--onnx", str(onnx_dir), "--start", "3", "--end", "4",
+                            "--out-dir", str(tmp_path / "res")])
+    assert r.exit_code == 0 and "Traceback" not in r.output, r.output
+    assert "1 pose: too few to score against the ground truth (2 at least): no metrics" in r.output
+    np.testing.assert_array_equal(read_poses(tmp_path / "res" / "poses.txt").poses, np.eye(4)[None])
+    assert not (tmp_path / "res" / "metrics.json").exists()
+
+
 def test_kitti_root_layout(small_model, small_synth, tmp_path):
     _, onnx_dir = small_model
     root = tmp_path / "kitti"
