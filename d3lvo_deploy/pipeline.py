@@ -250,10 +250,12 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
-    if rc.rerun_path is not None:
-        from .results import make_output_folder
+    from .results import make_output_folder
 
+    if rc.rerun_path is not None:
         make_output_folder(Path(rc.rerun_path).parent, "--rerun", "the recording")
+    if rc.viz_dir is not None:  # a file there would stop the run at its first picture
+        make_output_folder(rc.viz_dir, "--viz", "the pictures")
     n = end - rc.start
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
         warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "

@@ -574,6 +574,11 @@ def test_viz_writes_a_panel_per_chosen_frame(small_model, small_synth, tmp_path)
                             "--viz", str(tmp_path / "none")])
     assert r.exit_code == 0 and "--viz draws frames 10, 20, ... of a run (--viz-every 10), and this one has 6 frames: " \
         "no picture" in r.output, r.output
+    # --viz naming a file: one line before the first frame, nothing written
+    r = runner.invoke(app, ["run", "--seq-dir", str(small_synth), "--onnx", str(onnx_dir), "--out", str(tmp_path / "f.txt"),
+                            "--viz", str(tmp_path / "p.txt"), "--viz-every", "1"])
+    assert r.exit_code == 1 and "p.txt: is a file; --viz names the folder for the pictures" in r.output, r.output
+    assert not (tmp_path / "f.txt").exists()
     img = cv2.imread(str(tmp_path / "viz" / "000002.png"))
     h, w = 64, 224  # the test model's network view
     assert img.shape == (5 * (h + BAR), w, 3)  # camera, LiDAR, completion, flow, confidence
