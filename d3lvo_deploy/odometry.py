@@ -39,11 +39,15 @@ class ScanWarning(UserWarning):
     """A scan was empty or had NaN points; the documented fallback was used."""
 
 
+class FrameSizeError(D3LVOInputError):
+    """A frame of another size than the run's first: a run names the frame's image file."""
+
+
 def check_frame_size(image: np.ndarray, width: int, height: int) -> None:
     """A tracker's calibration is one camera's: a frame of another size is another camera."""
     h, w = image.shape[:2]
     if (w, h) != (width, height):
-        raise D3LVOInputError(None, f"image is {w}x{h}, earlier frames were {width}x{height}")
+        raise FrameSizeError(None, f"image is {w}x{h}, earlier frames were {width}x{height}")
 
 
 # a scan's columns: x y z, then intensity and whatever else a driver writes (ring, time, ...);

@@ -22,7 +22,7 @@ import numpy as np
 from .calib import check_fit
 from .errors import D3LVOInputError
 from .motion_guard import MotionGuard
-from .odometry import STAGES, Odometry
+from .odometry import STAGES, FrameSizeError, Odometry
 from .onnx_model import SessionConfig, StageModel
 from .poses import format_kitti_line, format_tum_line, read_poses
 from .datasets import Recording
@@ -373,11 +373,15 @@ def execute_run(plan: RunPlan, progress: Callable[[int, int, float], None] | Non
             return image, points, prepared, encoded, read_ms
 
         def frame_error(e: D3LVOInputError, i: int) -> D3LVOInputError:
-            """Frame i's error, naming the frame where the error names no file, and the poses saved."""
-            problem = e.problem if e.path is not None else f"frame {seq.frame_names[i]}: {e.problem}"
+            """Frame i's error, naming its file (a frame of another size: its image, where the recording
+            has a file per image) or else the frame, and the poses saved."""
+            path = e.path
+            if path is None and isinstance(e, FrameSizeError) and hasattr(seq, "image_path"):
+                path = seq.image_path(i)
+            problem = e.problem if path is not None else f"frame {seq.frame_names[i]}: {e.problem}"
             saved = (f"poses of frames {rc.start}..{i - 1} are saved in {out}, fix the frame and rerun with "
                      "--resume" if i > rc.start else "no pose is saved yet, fix the frame and rerun")
-            return D3LVOInputError(e.path, f"{problem}; {saved}")
+            return D3LVOInputError(path, f"{problem}; {saved}")
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="d3lvo-read") if pipelined else None
         try:

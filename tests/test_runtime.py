@@ -451,7 +451,7 @@ def test_cli_frame_of_another_size(small_model, small_synth, tmp_path, extra):
     r = runner.invoke(app, ["run", "--seq-dir", str(d), "--onnx", str(onnx_dir), "--out", str(tmp_path / "o.txt"),
                             *extra])
     assert r.exit_code == 1 and "Traceback" not in r.output, r.output
-    for w in ("frame 000004: image is 300x100, earlier frames were 620x188", "frames 0..3", "--resume"):
+    for w in ("image_2/000004.png: image is 300x100, earlier frames were 620x188", "frames 0..3", "--resume"):
         assert w in r.output, r.output
     assert len((tmp_path / "o.txt").read_text().splitlines()) == 4
 
