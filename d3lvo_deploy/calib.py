@@ -92,7 +92,8 @@ def parse_calib(path: str | Path) -> Calib:
     or a plain camera's: `K` (9 numbers) and `T_cam_lidar` (12 or 16), poses then in that camera."""
     path = Path(path)
     if not path.is_file():
-        raise D3LVOInputError(path, "calibration file not found")
+        raise D3LVOInputError(path, "is a folder; a calibration file was expected" if path.is_dir()
+                              else "calibration file not found")
     entries: dict[str, list[float]] = {}
     for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         if not line.strip():

@@ -72,7 +72,7 @@ def read_poses(path: str | Path, fmt: str = "auto") -> Trajectory:
     """Read a trajectory; `fmt` is auto|kitti|kitti_indexed|tum. Auto decides by the column count."""
     path = Path(path)
     if not path.is_file():
-        raise D3LVOInputError(path, "pose file not found")
+        raise D3LVOInputError(path, "is a folder; a pose file was expected" if path.is_dir() else "pose file not found")
     rows, lines = _parse_rows(path)
     if not rows:
         raise D3LVOInputError(path, "pose file is empty")

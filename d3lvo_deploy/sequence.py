@@ -151,6 +151,8 @@ def check_no_gap(root: Path, names: list[str], ids: np.ndarray) -> None:
 
 
 def _read_times(path: Path, n: int) -> np.ndarray:
+    if path.is_dir():
+        raise D3LVOInputError(path, "is a folder; times.txt holds one timestamp per frame in seconds")
     if not path.is_file():
         return np.arange(n) * 0.1
     stamps = []

@@ -423,6 +423,8 @@ def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
     (lambda d: np.fromfile(d / "velodyne" / "000000.bin", np.float32).astype(np.float64).tofile(
         d / "velodyne" / "000000.bin"), ["000000.bin", "a float64 file reads like this"]),
     (lambda d: [(d / "velodyne" / "000003.bin").unlink(), (d / "image_2" / "000003.png").unlink()], ["missing frame"]),
+    (lambda d: [(d / "times.txt").unlink(), (d / "times.txt").mkdir()], ["times.txt: is a folder"]),
+    (lambda d: [(d / "calib.txt").unlink(), (d / "calib.txt").mkdir()], ["calib.txt: is a folder"]),
 ])
 def test_cli_bad_input(small_model, small_synth, tmp_path, breakage, words):
     _, onnx_dir = small_model
