@@ -284,11 +284,12 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if resume and out_path is None and out_dir is None:
         raise D3LVOInputError(None, "--resume continues a results folder: name it with --out-dir "
                                     "(results/latest is the newest)")
+    shown: set[str] = set()  # the warnings printed, each once
     with warnings.catch_warnings(record=True) as caught:  # a reader's notes (an assumed frame rate), in one style
         warnings.simplefilter("always")
         seq = _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_topic, cloud_topic,
                               info_topic, max_dt)
-    _print_warnings(caught)
+    _print_warnings(caught, shown)
     _check_ground_truth(seq, given=gt is not None)
     sc = SessionConfig(provider=provider, threads=threads, optimization=optimization, backend=backend,
                        ov_precision=ov_precision, classical_beside=classical_beside)
@@ -349,7 +350,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
 
                 remove_if_empty(folder.path)
             raise
-    _print_warnings(caught)
+    _print_warnings(caught, shown)
     label = "D3LVO (ONNX)" if method == "d3lvo" else "direct tracker"
     engine_name = plan.odo.model.backend if method == "d3lvo" else "numpy"
     record.update(threads=sc.engine_threads,  # the count used
@@ -412,7 +413,7 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
             console.print(lead("interrupted", "yellow", f": the poses so far are in {out_path}; the same command with "
                                                         f"--resume {again} continues from there"), highlight=False)
             raise typer.Exit(130) from None
-    _print_warnings(caught)
+    _print_warnings(caught, shown)
     out.print(latency_table(summary))
     out.print(throughput_line(summary), highlight=False)
     out.print(f"{summary.frames} poses in {out_path} ({plan.rc.fmt}, {seq.frame_label}, first pose identity)",
@@ -537,10 +538,12 @@ def _asked(folder) -> str:
 SCAN_WARNINGS_SHOWN = 5  # of a run's per-frame scan warnings; the rest are counted
 
 
-def _print_warnings(caught) -> None:
+def _print_warnings(caught, seen: set[str]) -> None:
+    """Each message once per command (`seen`: what its earlier steps printed), and at most
+    SCAN_WARNINGS_SHOWN of the per-frame scan warnings."""
     from d3lvo_deploy.odometry import ScanWarning
 
-    seen, scans = set(), 0
+    scans = 0
     for w in caught:
         msg = str(w.message)
         if msg in seen:

@@ -95,6 +95,13 @@ def test_greyscale_images_warn_once_and_read_as_rgb(broken):
     assert imgs[1].shape == colour.shape and np.array_equal(imgs[1][..., 0], imgs[1][..., 2])
     expect = cv2.cvtColor(cv2.cvtColor(colour, cv2.COLOR_RGB2BGR), cv2.COLOR_BGR2GRAY)
     assert np.array_equal(imgs[1][..., 0], expect)
+    # a run reads the frames in several steps (the first frame's checks, the run): the warning once
+    from typer.testing import CliRunner
+
+    from cli.main import app
+
+    r = CliRunner().invoke(app, ["run", str(broken), "--method", "direct", "--out", str(broken / "p.txt")])
+    assert r.exit_code == 0 and r.output.count("greyscale images") == 1, r.output
 
 
 def test_gt_count(broken):
