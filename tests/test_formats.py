@@ -434,11 +434,16 @@ def test_scan_warnings_name_their_frame(tmp_path):
 
     from cli.common import console
 
+    shown: set[str] = set()
     with console.capture() as cap:
-        _print_warnings([W(k) for k in range(SCAN_WARNINGS_SHOWN + 2)])
+        _print_warnings([W(k) for k in range(SCAN_WARNINGS_SHOWN + 2)], shown)
     lines = cap.get().splitlines()
     assert len(lines) == SCAN_WARNINGS_SHOWN + 1 and lines[0].endswith("frame 000000's scan: no LiDAR points")
     assert "and 2 more scan warnings, one per frame, not shown" in lines[-1]
+    with console.capture() as cap:  # a later step of the same command: what was printed is not again
+        _print_warnings([W(0), W(SCAN_WARNINGS_SHOWN + 5)], shown)
+    lines = cap.get().splitlines()
+    assert len(lines) == 1 and lines[0].endswith(f"frame {SCAN_WARNINGS_SHOWN + 5:06d}'s scan: no LiDAR points")
 
 
 def test_a_scan_that_is_not_npy_names_the_file(tmp_path):
