@@ -625,15 +625,13 @@ def _score(seq, out_path: Path, fmt: str, start: int, end: int | None, plot: Pat
 
     est = read_poses(out_path, fmt)
     gt = seq.ground_truth
-    if gt is None:
-        console.print("no ground truth for this sequence: no metrics", highlight=False)
+    if gt is None or len(est) < 2:  # no ground truth, or a run of one frame: nothing to score
+        why = "no ground truth for this sequence" if gt is None else \
+            f"{len(est)} pose: too few to score against the ground truth (2 at least)"
+        console.print(f"{why}: no metrics", highlight=False)
         if plot is not None:
-            plot_trajectories(plot, {"estimate": est.poses}, title=f"{seq.root.name} (no ground truth)")
+            plot_trajectories(plot, {"estimate": est.poses}, title=f"{seq.root.name} (not scored)")
             console.print(f"plot written to {plot}", highlight=False)
-        return None
-    if len(est) < 2:  # a run of one frame: written, but nothing to score
-        console.print(f"{len(est)} pose: too few to score against the ground truth (2 at least): no metrics",
-                      highlight=False)
         return None
     stop = len(seq) if end is None else end
     g = gt.poses[start:stop]

@@ -144,9 +144,9 @@ FEW_IN_VIEW = 0.02
 # a scan whose median return is farther than this is not in metres: a 64-beam scan of a street
 # has its median within tens of metres, and long-range LiDARs within ~100
 MAX_MEDIAN_RANGE = 500.0
-# no LiDAR return lies this far (m); a float64 file, or another layout, read as float32 x, y, z, r puts
-# a quarter or more of its values there (the low halves of doubles read as floats)
-FAR_OUT = 1e4
+# no LiDAR return has a coordinate this far (m), nor one in millimetres; a float64 file read as
+# float32 x, y, z, r puts a quarter or more of its rows there (the halves of doubles read as floats)
+FAR_OUT = 1e6
 FAR_OUT_SHARE = 0.01
 
 
@@ -171,15 +171,15 @@ def check_fit(calib: Calib, width: int, height: int, scan: np.ndarray, where: st
     pts = pts[np.isfinite(pts).all(1)]
     if len(pts) < 1000:  # an empty or sparse scan: its own warning, and too few to judge by
         return
+    far = float((np.abs(pts) > FAR_OUT).any(axis=1).mean())
+    if far > FAR_OUT_SHARE:
+        raise D3LVOInputError(scan_where, f"{far:.0%} of frame {frame}'s {len(pts)} LiDAR returns have a "
+                                          f"coordinate beyond {FAR_OUT / 1000:,.0f} km: a scan must be float32 x, y, z, "
+                                          "reflectance in metres (a float64 file reads like this)")
     reach = float(np.median(np.linalg.norm(pts.astype(np.float64), axis=1)))  # float64: no overflow on garbage
     if reach > MAX_MEDIAN_RANGE:
         raise D3LVOInputError(scan_where, f"the median range of frame {frame}'s {len(pts)} LiDAR returns is "
                                           f"{reach:.0f} m: points must be in metres (millimetres or centimetres?)")
-    far = float((np.abs(pts) > FAR_OUT).any(axis=1).mean())
-    if far > FAR_OUT_SHARE:
-        raise D3LVOInputError(scan_where, f"{far:.0%} of frame {frame}'s {len(pts)} LiDAR returns lie more than "
-                                          f"{FAR_OUT / 1000:.0f} km away: a scan must be float32 x, y, z, reflectance "
-                                          "in metres (a float64 file reads like this)")
     seen = len(project_points(pts, calib.P_velo_to_image2, width, height, PROJECTION_MIN_DEPTH)[2])
     if seen == 0:
         raise D3LVOInputError(where, f"none of the {len(pts)} LiDAR returns of frame {frame} lands in its {size} "

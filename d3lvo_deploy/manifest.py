@@ -122,9 +122,13 @@ def check_model_config(m: dict, path: Path) -> None:
     for key, like in {**wanted, **{k: v for k, v in OPTIONAL_CONFIG.items() if k in cfg}}.items():
         if key not in cfg:
             raise D3LVOInputError(path, f"model_config has no {key!r}: re-export the checkpoint with `d3lvo export`")
-        ok = fits(cfg[key], like) and (not isinstance(like, list) or len(cfg[key]) > 0)
+        per_channel = key.startswith("rgb")  # a value per colour channel; the solver's iterations: one per level
+        ok = fits(cfg[key], like)
+        if ok and isinstance(like, list):
+            ok = len(cfg[key]) == 3 if per_channel else len(cfg[key]) > 0
         if not ok:
-            kind = f"a list of {describe(like)}" if isinstance(like, list) else describe(like)
+            kind = (f"a list of {'three ' if per_channel else ''}{describe(like)}" if isinstance(like, list)
+                    else describe(like))
             raise D3LVOInputError(path, f"model_config {key!r} is {cfg[key]!r}, it must be {kind}: re-export the "
                                         "checkpoint with `d3lvo export`")
     for key in ("height", "width"):

@@ -147,9 +147,9 @@ def check_texture(textured: np.ndarray, in_view: np.ndarray | None, min_gradient
     this frame keep their starting motion, which a run would otherwise write without a word."""
     if len(textured) == 0 and in_view is not None and len(in_view) >= BLANK_IMAGE_RETURNS:
         image = source.removesuffix("'s scan") + "'s image" if source.endswith("'s scan") else "image"
-        warnings.warn(f"{image}: no texture where its {len(in_view)} LiDAR returns in view land (grey gradient above "
-                      f"{min_gradient:g}): black, blank or overexposed? The pairs with this frame keep their starting "
-                      "motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
+        warnings.warn(f"{image}: no texture where the scan's {len(in_view)} returns in and around it land (grey "
+                      f"gradient above {min_gradient:g}): black, blank or overexposed? The pairs with this frame keep "
+                      "their starting motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
 
 
 @dataclass

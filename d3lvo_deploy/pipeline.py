@@ -250,12 +250,12 @@ def prepare_run(seq: Recording, model_dir: str | Path | None, rc: RunConfig, sc:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise D3LVOInputError(out.parent, f"cannot create the output folder ({e.strerror})") from None
-    from .results import make_output_folder
-
     if rc.rerun_path is not None:
+        from .results import make_output_folder
+
         make_output_folder(Path(rc.rerun_path).parent, "--rerun", "the recording")
-    if rc.viz_dir is not None:  # a file there would stop the run at its first picture
-        make_output_folder(rc.viz_dir, "--viz", "the pictures")
+    if rc.viz_dir is not None and rc.viz_dir.exists() and not rc.viz_dir.is_dir():  # else found at the first picture
+        raise D3LVOInputError(rc.viz_dir, "is a file; --viz names the folder for the pictures")
     n = end - rc.start
     if rc.viz_dir is not None and n <= rc.viz_every:  # the pictures are of frames viz_every, 2 viz_every, ...
         warnings.warn(f"{rc.viz_dir}: --viz draws frames {rc.viz_every}, {2 * rc.viz_every}, ... of a run (--viz-every "

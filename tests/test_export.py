@@ -251,7 +251,8 @@ def test_tampered_and_mismatched(exported, small_synth, tmp_path):
     for key, value, words in (("height", str(h), f"model_config 'height' is '{h}', it must be a whole number"),
                               ("width", None, "model_config has no 'width'"),
                               ("height", h + 8, f"model_config 'height' is {h + 8}, its 'input' height {h}"),
-                              ("rgb_std", 0.2, "model_config 'rgb_std' is 0.2, it must be a list of numbers"),
+                              ("rgb_std", 0.2, "model_config 'rgb_std' is 0.2, it must be a list of three numbers"),
+                              ("rgb_mean", [0.5], "model_config 'rgb_mean' is [0.5], it must be a list of three numbers"),
                               ("max_depth", "far", "model_config 'max_depth' is 'far', it must be a finite number")):
         cfg = dict(m["model_config"], **{key: value})
         if value is None:

@@ -146,8 +146,11 @@ def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_sy
     mm[:, :3] *= 1000.0
     cases = [(lambda: fresh().step(img, scan.T), "transposed"),
              (lambda: fresh().step(img, mm), "must be in metres"),
+             # a float64 scan of float32 values, and one of full float64 values (+ 1/3), read as float32
              (lambda: fresh().step(img, scan.astype(np.float64).view(np.float32).reshape(-1, 4)),
-              "LiDAR returns lie more than 10 km away: a scan must be float32 x, y, z, reflectance"),
+              "LiDAR returns have a coordinate beyond 1,000 km: a scan must be float32 x, y, z, reflectance"),
+             (lambda: fresh().step(img, (scan.astype(np.float64) + 1 / 3).view(np.float32).reshape(-1, 4)),
+              "LiDAR returns have a coordinate beyond 1,000 km: a scan must be float32 x, y, z, reflectance"),
              (lambda: fresh().step(np.ascontiguousarray(img[:90, :300]), scan), "lies outside frame 0's 300x90 image"),
              (lambda: fresh(Calib(seq.calib.P2, np.eye(4))).step(img, scan), "none of the"),
              (lambda: fresh().step(None, scan), "got NoneType"),
@@ -408,7 +411,7 @@ def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
                     warnings.simplefilter("error")
                     tracker.step(image, seq.scan(i))
             else:
-                with pytest.warns(ScanWarning, match="frame 2's image: no texture where its .* LiDAR returns"):
+                with pytest.warns(ScanWarning, match="frame 2's image: no texture where the scan's .* returns in and around it land"):
                     tracker.step(image, seq.scan(i))
             rel.append(tracker.relative.copy())
         assert np.linalg.norm(rel[1][:3, 3]) > 0.1  # it moved
@@ -478,6 +481,8 @@ def test_cli_run_of_one_frame_with_ground_truth_writes_it_and_scores_nothing(sma
     assert "1 pose: too few to score against the ground truth (2 at least): no metrics" in r.output
     np.testing.assert_array_equal(read_poses(tmp_path / "res" / "poses.txt").poses, np.eye(4)[None])
     assert not (tmp_path / "res" / "metrics.json").exists()
+    if importlib.util.find_spec("matplotlib") is not None:  # the plot of what was written, as without ground truth
+        assert (tmp_path / "res" / "trajectory.png").stat().st_size > 1000
 
 
 def test_kitti_root_layout(small_model, small_synth, tmp_path):
