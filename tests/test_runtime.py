@@ -133,9 +133,9 @@ def test_streaming_api_matches_the_file(small_model, small_synth, tmp_path):
 
 def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_synth):
     """Inputs that would otherwise run to a wrong trajectory, NaN poses or a failure frames later
-    are one D3LVOInputError at the call: a transposed scan, a scan in millimetres or in float64, images of
-    another size than the calibration's, a LiDAR extrinsic that sees nothing, non-rigid or NaN
-    poses for reset/prime, and wrong argument types."""
+    are one D3LVOInputError at the call: a transposed scan, a scan in millimetres or in float64,
+    images of another size than the calibration's, a LiDAR extrinsic that sees nothing, non-rigid
+    or NaN poses for reset/prime, and wrong argument types."""
     from d3lvo_deploy.calib import Calib
 
     _, onnx_dir = small_model
@@ -411,7 +411,8 @@ def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
                     warnings.simplefilter("error")
                     tracker.step(image, seq.scan(i))
             else:
-                with pytest.warns(ScanWarning, match="frame 2's image: no texture where the scan's .* returns in and around it land"):
+                blank = "frame 2's image: no texture where the scan's .* returns in and around it land"
+                with pytest.warns(ScanWarning, match=blank):
                     tracker.step(image, seq.scan(i))
             rel.append(tracker.relative.copy())
         assert np.linalg.norm(rel[1][:3, 3]) > 0.1  # it moved
