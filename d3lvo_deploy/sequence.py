@@ -150,6 +150,10 @@ def check_no_gap(root: Path, names: list[str], ids: np.ndarray) -> None:
         raise D3LVOInputError(root, f"frame numbers jump from {names[g]} to {names[g + 1]} (missing frame?)")
 
 
+# a recording whose frames are further apart than this (s, by the median) has times in another unit
+SLOWEST_FRAME_STEP = 10.0
+
+
 def _read_times(path: Path, n: int) -> np.ndarray:
     if path.is_dir():
         raise D3LVOInputError(path, "is a folder; times.txt holds one timestamp per frame in seconds")
@@ -170,6 +174,10 @@ def _read_times(path: Path, n: int) -> np.ndarray:
                                         "(timestamps must increase)")
     if len(stamps) != n:
         raise D3LVOInputError(path, f"{len(stamps)} timestamps for {n} frames")
+    step = float(np.median(np.diff(stamps))) if n > 1 else 0.0
+    if step > SLOWEST_FRAME_STEP:
+        warnings.warn(f"{path}: its frames are {step:g} apart (median): times are read as seconds (milliseconds or "
+                      "nanoseconds?); --realtime paces by them, the motion guard and TUM poses use them", stacklevel=3)
     return np.array(stamps, dtype=np.float64)
 
 

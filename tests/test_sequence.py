@@ -75,6 +75,20 @@ def test_times_errors_name_the_line(broken, text, words):
     assert "numpy" not in str(e.value) and "loadtxt" not in str(e.value)
 
 
+def test_times_in_another_unit_warn(broken):
+    """Times in milliseconds (100 a frame at 10 Hz) are read, but said to be in the wrong unit:
+    --realtime would wait 100 s a frame, and TUM poses would carry them; seconds say nothing."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        KittiSequence.open(broken)  # the fixture's 0.1 s steps
+    (broken / "times.txt").write_text("".join(f"{100.0 * i}\n" for i in range(6)))
+    with pytest.warns(UserWarning, match=r"times.txt: its frames are 100 apart \(median\): times are read as seconds"):
+        seq = KittiSequence.open(broken)
+    np.testing.assert_array_equal(seq.times, 100.0 * np.arange(6))
+
+
 def test_greyscale_images_warn_once_and_read_as_rgb(broken):
     import warnings
 
