@@ -2,6 +2,7 @@
 
 import importlib.util
 import json
+import os
 
 import numpy as np
 import onnx
@@ -129,9 +130,18 @@ def test_session_config_errors():
                       (SessionConfig(backend="openvino", profile_dir="/tmp/x"), "onnxruntime profiles"),
                       (SessionConfig(threads=-1), "--threads must be 0 .* or more, not -1"),
                       (SessionConfig(prepare_threads=-2), r"--prepare-threads must be 0 \(1 or 2 by the cores\) or more"),
-                      (SessionConfig(flowpose_threads=-1), r"flowpose_threads must be 0 \(as the other stages\)")]:
+                      (SessionConfig(flowpose_threads=-1), r"flowpose_threads must be 0 \(as the other stages\)"),
+                      # an API caller's threads: whole numbers, and not a million (each engine thread holds memory)
+                      (SessionConfig(threads=1.5), "--threads must be a whole number of threads, not 1.5"),
+                      (SessionConfig(threads="2"), "--threads must be a whole number of threads, not '2'"),
+                      (SessionConfig(prepare_threads=True), "--prepare-threads must be a whole number of threads"),
+                      (SessionConfig(threads=10**6), r"--threads 1000000 is more than \d+ threads \(4 for each of")]:
         with pytest.raises(D3LVOInputError, match=words):
             sc.check()
+    cores = os.cpu_count() or 1
+    SessionConfig(threads=max(64, 4 * cores)).check()  # the most it takes
+    with pytest.raises(D3LVOInputError, match="is more than"):
+        SessionConfig(threads=max(64, 4 * cores) + 1).check()
 
 
 needs_openvino = pytest.mark.skipif(importlib.util.find_spec("openvino") is None,
