@@ -279,8 +279,16 @@ def _run(path, fmt, seq_dir, kitti_root, sequence, calib, image_topic, cloud_top
     if sequences is not None:
         if method != "d3lvo":
             raise D3LVOInputError(None, "--sequences runs the network only; run --method direct per sequence")
+        # what a single run takes and many sequences do not: refused rather than ignored
+        single = {"--start": start != 0, "--end": end is not None, "--resume": resume, "--gt": gt is not None,
+                  "--plot": plot is not None, "--viz": viz is not None, "--rerun": rerun is not None,
+                  "--realtime": realtime, "--pipeline": pipeline, "--out": out_path is not None}
+        if any(single.values()):
+            raise D3LVOInputError(None, f"{', '.join(k for k, v in single.items() if v)}: for a single run; "
+                                        "--sequences runs whole sequences from their start, scored against "
+                                        "poses/NN.txt, into --out-dir")
         return _run_many(kitti_root, sequences, out_dir, onnx, engine, workers, address, chunk, overlap, backend,
-                         guard)
+                         guard, overwrite)
     if resume and out_path is None and out_dir is None:
         raise D3LVOInputError(None, "--resume continues a results folder: name it with --out-dir "
                                     "(results/latest is the newest)")
@@ -559,7 +567,8 @@ def _print_warnings(caught, seen: set[str]) -> None:
                                                 "frame, not shown"), highlight=False)
 
 
-def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend, guard) -> None:
+def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, overlap, backend, guard,
+              overwrite: bool = False) -> None:
     import os
     import time
 
@@ -578,6 +587,11 @@ def _run_many(kitti_root, spec, out_dir, onnx, engine, workers, address, chunk, 
     for n, d in dirs.items():
         if not d.is_dir():
             raise D3LVOInputError(d, f"sequence {n} not found under {kitti_root}")
+    held = [out_dir / f"{n}.txt" for n in names if (out_dir / f"{n}.txt").is_file()]
+    if held and not overwrite:  # as a single run's --out: never replaced without being asked
+        raise D3LVOInputError(held[0], f"already holds poses from an earlier run ({len(held)} of the {len(names)} "
+                                       "sequences' files are there); --overwrite replaces them, or give another "
+                                       "--out-dir")
     from d3lvo_deploy.sequence import KittiSequence
     from d3lvo_deploy.scaleout import plan_chunks
 

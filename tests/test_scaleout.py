@@ -119,6 +119,19 @@ def test_cli_many_sequences_with_eval(kitti_root, small_model, tmp_path):
     r = runner.invoke(app, ["run", "--kitti-root", str(kitti_root), "--sequences", "00-03", "--out-dir", str(tmp_path / "o"),
                             "--onnx", str(onnx_dir)])
     assert r.exit_code == 1 and "sequence 02 not found" in r.output
+    # the same folder again: its poses are not replaced unless asked (--overwrite), as a single run's
+    before = (tmp_path / "o" / "00.txt").read_bytes()
+    again = ["run", "--kitti-root", str(kitti_root), "--sequences", "00-01", "--out-dir", str(tmp_path / "o"),
+             "--onnx", str(onnx_dir), "--engine", "sequential", "--chunk", "4", "--max-accel", "0.001"]
+    r = runner.invoke(app, again)
+    assert r.exit_code == 1 and "00.txt: already holds poses from an earlier run (2 of the 2" in r.output, r.output
+    assert (tmp_path / "o" / "00.txt").read_bytes() == before
+    r = runner.invoke(app, [*again, "--overwrite"])
+    assert r.exit_code == 0 and (tmp_path / "o" / "00.txt").read_bytes() != before, r.output  # the guard changed it
+    # a single run's options are refused, not ignored
+    r = runner.invoke(app, [*again[:-2], "--start", "1", "--resume", "--viz", str(tmp_path / "v")])
+    assert r.exit_code == 1 and "--start, --resume, --viz: for a single run; --sequences runs whole sequences" \
+        in r.output, r.output
 
 
 @pytest.mark.parametrize("extra, words", [(["--engine", "foo"], "--engine must be one of sequential, local, ray"),
