@@ -60,6 +60,30 @@ def _check_type(path: Path, table: str, key: str, value, default) -> object:
     return converted(value, default)
 
 
+# values of the right kind that still cannot train, as (lowest, highest, whether the lowest is allowed):
+# a negative grad_clip turns the gradient round (clip_grad_norm_ scales by a negative factor) and
+# trains uphill, a negative loss weight rewards that loss, a probability above 1 is always
+BOUNDS = {("train", "lr"): (0.0, None, False), ("train", "balance_lr"): (0.0, None, False),
+          ("train", "grad_clip"): (0.0, None, False), ("train", "weight_decay"): (0.0, None, True),
+          ("train", "warmup"): (0, None, True),
+          ("augment", "flip"): (0.0, 1.0, True), ("augment", "cold_start"): (0.0, 1.0, True),
+          ("augment", "held_out_returns"): (0.0, 1.0, True), ("augment", "brightness"): (0.0, 1.0, True),
+          ("augment", "rotation_deg"): (0.0, None, True), ("loss", "alpha_final"): (0.0, None, True),
+          ("loss", "alphas"): (0.0, None, True)}
+
+
+def _check_bounds(path: Path, table: str, key: str, value) -> None:
+    """A value inside its `BOUNDS` (loss weights: 0 or more), else one error naming the key."""
+    low, high, closed = BOUNDS.get((table, key), (0.0, None, True) if key.endswith("_weight") else (None, None, True))
+    if low is None or value is None:
+        return
+    for v in value if isinstance(value, (tuple, list)) else [value]:
+        if (v < low if closed else v <= low) or (high is not None and v > high):
+            span = f"from {low:g} to {high:g}" if high is not None else f"{'at least' if closed else 'above'} {low:g}"
+            given = f"{list(value)}: each value" if isinstance(value, (tuple, list)) else f"{value!r}"
+            raise D3LVOInputError(path, f"[{table}] {key} = {given} must be {span}")
+
+
 def read_train_config(path: str | Path) -> dict[str, dict]:
     """{table: {key: value}} with every key known and of the right kind; [model] values are also
     checked by building the model config."""
@@ -83,6 +107,7 @@ def read_train_config(path: str | Path) -> dict[str, dict]:
             if key not in kinds[table]:
                 raise D3LVOInputError(path, f"[{table}] unknown key {key!r}")
             values[key] = _check_type(path, table, key, value, kinds[table][key])
+            _check_bounds(path, table, key, values[key])
         out[table] = dict(values)
     model_config(path, out["model"])  # bad values: one error now, not at the first step
     return out

@@ -492,7 +492,12 @@ flip = 0.0
                         ("[train]\nbatch_norm = 'global'\n", "[train] batch_norm must be one of sync, local, frozen"),
                         ("[model]\nfeature_widths = [16, 48]\n", "feature_widths takes 4 channel counts"),
                         ("[model]\nfeature_widths = [16, 32, -32, 64]\n", "feature_widths takes 4 channel counts"),
-                        ("[optimizer]\nlr = 1\n", "unknown table [optimizer]")):
+                        ("[optimizer]\nlr = 1\n", "unknown table [optimizer]"),
+                        # of the right kind, but cannot train: a negative clip turns the gradient round
+                        ("[train]\ngrad_clip = -1.0\n", "[train] grad_clip = -1.0 must be above 0"),
+                        ("[augment]\nflip = 2.0\n", "[augment] flip = 2.0 must be from 0 to 1"),
+                        ("[loss]\nflow_weight = -1.0\n", "[loss] flow_weight = -1.0 must be at least 0"),
+                        ("[loss]\nalphas = [0.2, -1.0]\n", "[loss] alphas = [0.2, -1.0]: each value must be at least 0")):
         bad = tmp_path / "bad.toml"
         bad.write_text(text)
         r = runner.invoke(app, ["train", "--config", str(bad)])
