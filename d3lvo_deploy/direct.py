@@ -34,8 +34,8 @@ from .calib import Calib
 from .cold_start import ColdStartConfig, best_start, candidate_starts, motion_samples, photometric_cost
 from .geometry import axis_angle_to_rot, change_frame, relative, se3_inv
 from .motion_guard import MotionGuard, guard_motion, scaled_motion
-from .odometry import (FrameTiming, as_calib, calib_source, check_first_frame, check_frame_size, check_image,
-                       check_texture, clean_scan, rigid_pose)
+from .odometry import (FrameTiming, as_calib, as_stamp, calib_source, check_first_frame, check_frame_size,
+                       check_image, check_texture, clean_scan, rigid_pose)
 from .points import PointConfig, bilinear as sample, grey_image, gradients, point_config, project, textured_points
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 
@@ -397,6 +397,7 @@ class DirectOdometry:
     def register_frame(self, image: np.ndarray, points: np.ndarray | None, stamp: float | None = None) -> np.ndarray:
         """Track frame t against frame t-1's LiDAR points; returns the image_2 motion A (t in t-1).
         `stamp`: frame t's time in seconds, for the motion guard."""
+        stamp = as_stamp(stamp)
         cur = self._frame(image, points)
         t0 = time.perf_counter()
         A = np.eye(4)

@@ -7,6 +7,7 @@ frame t-1 of the next pair. Poses are cam0 poses (KITTI convention), first frame
 from __future__ import annotations
 
 import functools
+import numbers
 import os
 import time
 import warnings
@@ -83,6 +84,18 @@ def check_first_frame(tracker, image: np.ndarray, scan: np.ndarray | None) -> No
         check_fit(tracker.calib, image.shape[1], image.shape[0], scan if scan is not None else np.zeros((0, 3)),
                   tracker.calib_source, "0")
         tracker.fit_checked = True
+
+
+def as_stamp(stamp, what: str = "stamp") -> float | None:
+    """A frame's time in seconds (None where none is given): a NaN, inf or non-number would reach
+    the constant-velocity start as NaN or an absurd scale, so it is one error at the call."""
+    if stamp is None:
+        return None
+    if isinstance(stamp, (str, bytes, bool)) or not isinstance(stamp, (numbers.Real, np.floating, np.integer)):
+        raise D3LVOInputError(None, f"{what} must be a time in seconds (a number), not {stamp!r}")
+    if not np.isfinite(stamp):
+        raise D3LVOInputError(None, f"{what} must be a finite time in seconds, not {stamp!r}")
+    return float(stamp)
 
 
 def rigid_pose(pose, what: str) -> np.ndarray:
@@ -286,7 +299,7 @@ class Odometry:
         check_image(image)
         with one_blas_thread():  # no BLAS threads left spinning beside the engine (`blas`)
             frame = self._prepare(image, points, self.prepare_threads if threads is None else threads)
-        frame.stamp = None if stamp is None else float(stamp)
+        frame.stamp = as_stamp(stamp)
         return frame
 
     def _beside(self, job: Callable[[], Any], threads: int) -> Callable[[], Any]:
@@ -485,7 +498,9 @@ class Odometry:
         compares the next pair with it (the two frames' stamps give its time). `hold_left`: the
         saved `hold_left` where the model holds its choice (`pt_select_hold`)."""
         if isinstance(hold_left, bool) or not (isinstance(hold_left, (int, np.integer)) and 0 <= hold_left <= self.hold):
-            raise ValueError(f"prime's hold_left must be a whole number in 0..{self.hold} (pt_select_hold), not {hold_left!r}")
+            raise D3LVOInputError(None, f"prime's hold_left must be a whole number in 0..{self.hold} (pt_select_hold), "
+                                        f"not {hold_left!r}")
+        stamp, previous_stamp = as_stamp(stamp, "prime's stamp"), as_stamp(previous_stamp, "prime's previous_stamp")
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
         if start is not None:  # one 4x4, or `start_state`'s (K,4,4)

@@ -135,8 +135,9 @@ def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_sy
     """Inputs that would otherwise run to a wrong trajectory, NaN poses or a failure frames later
     are one D3LVOInputError at the call: a transposed scan, a scan in millimetres or in float64,
     images of another size than the calibration's, a LiDAR extrinsic that sees nothing, non-rigid
-    or NaN poses for reset/prime, and wrong argument types."""
+    or NaN poses for reset/prime, NaN, inf or non-number stamps, and wrong argument types."""
     from d3lvo_deploy.calib import Calib
+    from d3lvo_deploy.direct import DirectOdometry
 
     _, onnx_dir = small_model
     seq = KittiSequence.open(small_synth)
@@ -161,7 +162,13 @@ def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_sy
              (lambda: fresh().reset(np.full((4, 4), np.nan)), "start_pose has NaN"),
              (lambda: fresh().reset(np.eye(3)), "start_pose must be a 4x4"),
              (lambda: fresh().reset(np.diag([2.0, 1.0, 1.0, 1.0])), "not a rigid transform"),
-             (lambda: fresh().prime(img, scan, np.eye(4), previous_pose=np.full((4, 4), np.nan)), "previous_pose")]
+             (lambda: fresh().prime(img, scan, np.eye(4), previous_pose=np.full((4, 4), np.nan)), "previous_pose"),
+             (lambda: fresh().prime(img, scan, np.eye(4), hold_left=5), "prime's hold_left must be a whole number"),
+             # a frame's time: NaN or inf would reach the constant-velocity start as NaN or a huge scale
+             (lambda: fresh().step(img, scan, float("inf")), "stamp must be a finite time in seconds, not inf"),
+             (lambda: fresh().step(img, scan, "0.1"), "stamp must be a time in seconds (a number), not '0.1'"),
+             (lambda: DirectOdometry(seq.calib).step(img, scan, float("nan")), "stamp must be a finite time"),
+             (lambda: fresh().prime(img, scan, np.eye(4), stamp=[0.1]), "prime's stamp must be a time in seconds")]
     for call, words in cases:
         with pytest.raises(D3LVOInputError, match=words.replace("(", r"\(").replace(")", r"\)")):
             call()
