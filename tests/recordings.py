@@ -82,13 +82,16 @@ def _messages(ts, ros1: bool, seq, frames, image_frame: str, lidar_frame: str, c
     return sorted(out, key=lambda m: m[3])
 
 
-def write_ros2_bag(seq, out: Path, storage: str = "mcap", frames=None, **kw) -> Path:
+def write_ros2_bag(seq, out: Path, storage: str = "mcap", frames=None, edit=None, **kw) -> Path:
+    """`edit`: a function that changes the messages (a list of `_messages`' tuples) before writing."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     msgs = _messages(ts, False, seq, range(len(seq)) if frames is None else frames, **_defaults(kw))
+    if edit is not None:
+        edit(msgs)
     with Writer(out, version=9, storage_plugin=plugin) as w:
         _write(w, ts, msgs, ts.serialize_cdr)
     return out

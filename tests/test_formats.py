@@ -107,6 +107,36 @@ def test_bag_at_an_mcap_file_and_topic_choice(tmp_path):
     assert len(s) == 3 and np.array_equal(s.image(2), seq.image(2)) and np.array_equal(s.scan(1), seq.scan(1))
 
 
+def _zero_rotation(msgs, other_branch: bool) -> None:
+    """/tf_static's camera-LiDAR transform with a zero quaternion, or a copy of it on another branch
+    of the tree (base_link to imu_link) with one."""
+    import copy
+
+    tf = next(m for topic, _, m, _ in msgs if topic == "/tf_static")
+    bad = copy.deepcopy(tf.transforms[0]) if other_branch else tf.transforms[0]
+    bad.transform.rotation.w = bad.transform.rotation.x = bad.transform.rotation.y = bad.transform.rotation.z = 0.0
+    if other_branch:
+        bad.header.frame_id, bad.child_frame_id = "base_link", "imu_link"
+        tf.transforms = [tf.transforms[0], bad]
+
+
+def test_a_broken_static_transform_is_set_aside_and_named_where_the_chain_needs_it(tmp_path):
+    """A zero quaternion in /tf_static on a branch the run does not need (an IMU's) is set aside: the
+    run gives the poses of the intact bag; on the camera-LiDAR transform itself it is one line
+    saying which transform was set aside and why (a raw ValueError before)."""
+    seq = KittiSequence.open(TINY)
+    good = write_ros2_bag(seq, tmp_path / "good")
+    other = write_ros2_bag(seq, tmp_path / "other", edit=lambda m: _zero_rotation(m, True))
+    for bag in (good, other):
+        r = runner.invoke(app, ["run", str(bag), "--method", "direct", "--out", str(tmp_path / f"{bag.name}.txt")])
+        assert r.exit_code == 0, r.output
+    assert (tmp_path / "other.txt").read_bytes() == (tmp_path / "good.txt").read_bytes()
+    chain = write_ros2_bag(seq, tmp_path / "chain", edit=lambda m: _zero_rotation(m, False))
+    r = runner.invoke(app, ["run", str(chain), "--method", "direct", "--out", str(tmp_path / "chain.txt")])
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert "set aside: a zero-length rotation quaternion" in " ".join(r.output.split()), r.output
+
+
 @pytest.mark.parametrize("kind, words", [
     ("no-cloud", "has no PointCloud2 topic; its topics: /tf_static"),
     ("no-pairs", "0 of 3 images on /camera/image_raw have a scan on /velodyne_points within 0.05 s (closest: 0.800 s)"),

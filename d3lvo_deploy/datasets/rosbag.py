@@ -79,15 +79,24 @@ def cloud_to_scan(path: Path, msg) -> np.ndarray:
     return as_scan(path, xyz, pts[inten] if inten else None)
 
 
-def static_transforms(reader, connections) -> dict[tuple[str, str], np.ndarray]:
-    """{(parent, child): T_parent_child} from every /tf_static message."""
-    out = {}
+def static_transforms(reader, connections) -> tuple[dict[tuple[str, str], np.ndarray], dict[tuple[str, str], str]]:
+    """({(parent, child): T_parent_child}, {(parent, child): what is wrong}) from every /tf_static
+    message: a transform with a zero or non-finite quaternion or translation is set aside, so that
+    one on another branch of the tree (an IMU's) does not stop the run, and named where the chain
+    the run needs is missing."""
+    out, bad = {}, {}
     for conn, _, raw in reader.messages(connections=connections):
         for tf in reader.deserialize(raw, conn.msgtype).transforms:
             t, q = tf.transform.translation, tf.transform.rotation
-            T = make_se3(quat_to_rot(np.array([q.w, q.x, q.y, q.z])), np.array([t.x, t.y, t.z]))
-            out[(tf.header.frame_id.lstrip("/"), tf.child_frame_id.lstrip("/"))] = T
-    return out
+            key = (tf.header.frame_id.lstrip("/"), tf.child_frame_id.lstrip("/"))
+            quat, trans = np.array([q.w, q.x, q.y, q.z], np.float64), np.array([t.x, t.y, t.z], np.float64)
+            if not (np.isfinite(quat).all() and np.isfinite(trans).all()):
+                bad[key] = "a NaN or inf in its rotation or translation"
+            elif not np.linalg.norm(quat) > 1e-9:
+                bad[key] = "a zero-length rotation quaternion"
+            else:
+                out[key] = make_se3(quat_to_rot(quat), trans)
+    return out, bad
 
 
 def chain(transforms: dict[tuple[str, str], np.ndarray], target: str, source: str) -> np.ndarray | None:
@@ -235,13 +244,14 @@ class BagSequence(SensorSequence):
                 raise D3LVOInputError(path, f"CameraInfo's distortion model {model!r} is not plumb_bob, "
                                             "rational_polynomial or equidistant: give a rectified image topic")
         tf_conns = [c for c in conns if c.msgtype == TF_TYPE and c.topic.endswith("tf_static")]
-        tfs = static_transforms(reader, tf_conns) if tf_conns else {}
+        tfs, bad = static_transforms(reader, tf_conns) if tf_conns else ({}, {})
         Tr = chain(tfs, cam_frame, lidar_frame) if cam_frame != lidar_frame else np.eye(4)
         if Tr is not None:  # into the rectified frame P projects from
             Tr = make_se3(R, np.zeros(3)) @ Tr
         if Tr is None:
             frames = sorted({f for pc in tfs for f in pc})
-            where = f"/tf_static links no chain from '{lidar_frame}' to '{cam_frame}' (its frames: {frames})" \
+            where = f"/tf_static links no chain from '{lidar_frame}' to '{cam_frame}' (its frames: {frames}" + \
+                "".join(f"; '{p}' to '{c}' set aside: {why}" for (p, c), why in bad.items()) + ")" \
                 if tf_conns else "has no /tf_static"
             raise D3LVOInputError(path, f"no LiDAR-camera extrinsics: the bag {where}; give them with --calib FILE "
                                         "(K and T_cam_lidar, or KITTI's P2 and Tr)")
