@@ -387,6 +387,7 @@ def test_resume_continues_only_the_run_its_config_records(tmp_path, monkeypatch)
     (["--out", "p.txt", "--image-topic", "/cam", "--max-dt", "0.1"],
      "--image-topic, --max-dt are for ROS bags; this is a kitti recording"),
     (["--out", "p.txt", "--gt", "nowhere.txt"], "nowhere.txt: pose file not found"),
+    (["--out", "p.txt", "--max-dt", "-1"], "--max-dt must be a time above 0 s"),
     (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data")], "data: is a folder; a pose file was expected"),
     (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data" / "tiny_seq" / "times.txt")],
      "1 columns per line: expected 12 (KITTI)"),
@@ -474,6 +475,18 @@ def test_scan_warnings_name_their_frame(tmp_path):
         _print_warnings([W(0), W(SCAN_WARNINGS_SHOWN + 5)], shown)
     lines = cap.get().splitlines()
     assert len(lines) == 1 and lines[0].endswith(f"frame {SCAN_WARNINGS_SHOWN + 5:06d}'s scan: no LiDAR points")
+
+
+def test_a_pcd_that_cannot_be_read_is_one_line(tmp_path):
+    """The PCD reader's own report (a validator's, many lines) is cut to its first line."""
+    pytest.importorskip("pypcd4")
+    folder = write_scan_folder(KittiSequence.open(TINY), tmp_path / "f", ".pcd")
+    bad = sorted((folder / "scans").glob("*.pcd"))[1]
+    bad.write_text("garbage\n")
+    r = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "p.txt"), "--method", "direct"])
+    assert r.exit_code == 1 and f"{bad.name}: cannot be read as a PCD file (" in r.output, r.output
+    error = [line for line in r.output.splitlines() if "error" in line]
+    assert len(error) == 1 and "--resume" in r.output and "errors.pydantic" not in r.output, r.output
 
 
 def test_a_scan_that_is_not_npy_names_the_file(tmp_path):

@@ -36,7 +36,8 @@ def read_pcd(path: Path) -> np.ndarray:
     try:
         pc = PointCloud.from_path(path)
     except Exception as e:  # noqa: BLE001 - the library's own error types vary by body kind
-        raise D3LVOInputError(path, f"cannot be read as a PCD file ({type(e).__name__}: {e})") from None
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""  # a validator's report runs to many lines
+        raise D3LVOInputError(path, f"cannot be read as a PCD file ({type(e).__name__}: {first[:120]})") from None
     fields = list(pc.fields)
     if not {"x", "y", "z"} <= set(fields):
         raise D3LVOInputError(path, f"PCD fields {fields} lack x, y, z")
