@@ -370,6 +370,7 @@ class DirectOdometry:
         self.relative = np.eye(4)  # the last frame-to-frame motion in cam0
         self.motion2 = np.eye(4)  # last image_2 motion: the constant-velocity start
         self.cold = True  # no previous motion yet: the first pair starts from `cold_start`'s guesses
+        self.fit_checked = False  # a reset may start another recording: its first frame is checked again
         self.frames = 0
         self.motion_dt = self.guard.period  # the time of `motion2`
         self._prev_stamp: float | None = None
@@ -389,7 +390,7 @@ class DirectOdometry:
         scan = rows_in_view(scan, P, w, h, min(PROJECTION_MIN_DEPTH, self.cfg.points.min_depth))
         X = textured_points(scan, self.calib.T_cam2_velo, self.calib.K2, grey, self.cfg.points,
                             grads=levels[0].stack[..., 1:])
-        check_texture(X, scan, self.cfg.points.min_gradient, self.scan_source)
+        check_texture(X, scan, self.cfg.points, self.calib.T_cam2_velo, self.scan_source)
         depth = sparse_depth(scan, P, w, h) if self.cfg.reads_scan else None
         self.last_timing = FrameTiming({"project": (time.perf_counter() - t0) * 1000})
         return TrackedFrame(levels, X, depth)

@@ -154,15 +154,28 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
 BLANK_IMAGE_RETURNS = 100
 
 
-def check_texture(textured: np.ndarray, in_view: np.ndarray | None, min_gradient: float, source: str) -> None:
-    """A warning where the scan's returns in view all land where the image has no texture (a
-    black, blank or overexposed frame): the solver then has no point to track, and the pairs with
-    this frame keep their starting motion, which a run would otherwise write without a word."""
-    if len(textured) == 0 and in_view is not None and len(in_view) >= BLANK_IMAGE_RETURNS:
+def check_texture(textured: np.ndarray, in_view: np.ndarray | None, cfg, T_cam_velo: np.ndarray, source: str) -> None:
+    """A warning where the solver has no point of this frame to track though its scan has returns
+    around the view: none within the solver's depth range (a scan in millimetres after the first
+    frame, which `check_fit` reads), or none on image texture (a black, blank or overexposed
+    frame). The pairs with this frame keep their starting motion, which a run would otherwise
+    write without a word. `cfg`: the solver's `PointConfig`."""
+    if len(textured) or in_view is None or len(in_view) < BLANK_IMAGE_RETURNS:
+        return
+    from .points import in_depth_range
+
+    near = len(in_depth_range(in_view, T_cam_velo, cfg.min_depth, cfg.max_depth))
+    if near < BLANK_IMAGE_RETURNS:
+        warnings.warn(f"{source}: {near} of its {len(in_view)} returns in and around the view lie within "
+                      f"{cfg.min_depth:g}-{cfg.max_depth:g} m of the camera: not in metres (millimetres?)? The pairs "
+                      "with this frame keep their starting motion (the last pair's; none on the first)", ScanWarning,
+                      stacklevel=4)
+    else:
+        min_gradient = cfg.min_gradient
         image = source.removesuffix("'s scan") + "'s image" if source.endswith("'s scan") else "image"
-        warnings.warn(f"{image}: no texture where the scan's {len(in_view)} returns in and around it land (grey "
-                      f"gradient above {min_gradient:g}): black, blank or overexposed? The pairs with this frame keep "
-                      "their starting motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
+        warnings.warn(f"{image}: no texture where the scan's {near} returns in and around it land (grey gradient "
+                      f"above {min_gradient:g}): black, blank or overexposed? The pairs with this frame keep their "
+                      "starting motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
 
 
 @dataclass
@@ -271,6 +284,7 @@ class Odometry:
         # (None before the first pair, which starts both solves alike)
         self.motion2_classical: np.ndarray | None = None
         self.cold = True  # no previous motion yet
+        self.fit_checked = False  # a reset may start another recording: its first frame is checked again
         self.frames = 0
         self.hold_left = 0  # `hold`: pairs left on which the weighted pose is kept whatever the graph chose
         # the motion guard's state: the last kept image_2 motion (None until a pair has one), its
@@ -332,7 +346,7 @@ class Odometry:
         if textured is not None:
             depth = sparse_depth(scan, self.calib.P_velo_to_image2, w, h) if self.takes_depth else None
             solver = SolverFrame.assemble(finest(), textured(), self.pyramid_levels, depth)
-            check_texture(solver.points, scan, self.points.min_gradient, self.scan_source)
+            check_texture(solver.points, scan, self.points, self.calib.T_cam2_velo, self.scan_source)
         return PreparedFrame(image, rgb, inv, solver, (time.perf_counter() - t0) * 1000)
 
     def _textured(self, finest: Callable[[], np.ndarray], scan: np.ndarray) -> np.ndarray:

@@ -400,7 +400,8 @@ def test_nan_reflectance_is_read_as_zero(small_model, small_synth):
 def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
     """A black frame mid-run (a camera fault) leaves the point solver nothing to track: the pairs
     with it keep their starting motion (`motion2`, the constant-velocity start), and the tracker
-    says so, naming the frame; the bundled model and the direct tracker alike."""
+    says so, naming the frame; a scan in millimetres later on is named as the scan's fault; the
+    bundled model and the direct tracker alike."""
     from d3lvo_deploy.bundled import bundled_model_dir
     from d3lvo_deploy.direct import DirectOdometry
     from d3lvo_deploy.geometry import change_frame
@@ -424,6 +425,16 @@ def test_a_blank_frame_warns_and_keeps_the_starting_motion(small_synth):
             rel.append(tracker.relative.copy())
         assert np.linalg.norm(rel[1][:3, 3]) > 0.1  # it moved
         np.testing.assert_allclose(rel[2], start, atol=1e-6)  # the black frame's pair: its starting motion
+        # a scan in millimetres after the first frame (which alone is checked for units) is blamed
+        # on the scan, not on the image; after a reset the next frame is a first frame again
+        mm = seq.scan(3) * np.array([1000.0, 1000.0, 1000.0, 1.0], np.float32)
+        tracker.scan_source = "frame 3's scan"
+        with pytest.warns(ScanWarning, match=r"frame 3's scan: 0 of its \d+ returns in and around the view lie "
+                                             r"within .* m of the camera: not in metres \(millimetres\?\)"):
+            tracker.step(seq.image(3), mm)
+        tracker.reset()
+        with pytest.raises(D3LVOInputError, match="must be in metres"):
+            tracker.step(seq.image(3), mm)
 
 
 @pytest.mark.parametrize("breakage, words", [
