@@ -121,6 +121,13 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
     the image alone (documented fallback), with a warning."""
     if points is None:
         points = np.zeros((0, 4), np.float32)
+    kind = getattr(points, "dtype", np.dtype(np.float32)).kind
+    if kind in "USOb" and len(points):  # text read as numbers, or booleans: not a scan
+        raise D3LVOInputError(None, f"{source}: points must be a numeric (N,4) array (x, y, z, intensity), "
+                                    f"got an array of {points.dtype}")
+    if kind in "iu" and len(points):  # whole metres: the solver's points a metre off, where it reads them
+        warnings.warn(f"{source}: integer coordinates ({points.dtype}): LiDAR points in metres are float32; "
+                      "these are taken as given", ScanWarning, stacklevel=3)
     try:
         pts = np.asarray(points, dtype=np.float32)
     except (TypeError, ValueError):

@@ -156,6 +156,7 @@ def test_streaming_api_refuses_what_would_give_wrong_poses(small_model, small_sy
              (lambda: fresh(Calib(seq.calib.P2, np.eye(4))).step(img, scan), "none of the"),
              (lambda: fresh().step(None, scan), "got NoneType"),
              (lambda: fresh().step(img, [["a", "b", "c"]]), "numeric (N,4) array"),
+             (lambda: fresh().step(img, scan[:100].astype(str)), "numeric (N,4) array (x, y, z, intensity), got an array of <U"),
              (lambda: fresh({"P2": seq.calib.P2}), "calib must be a Calib or the path"),
              (lambda: Calib(seq.calib.P2[:, :3], seq.calib.Tr), "P2 must be a 3x4"),
              (lambda: Calib(seq.calib.P2, np.full((4, 4), np.nan)), "finite"),
@@ -365,9 +366,11 @@ def test_scan_fallbacks_warn(small_model, small_synth):
         p = odo.step(seq.image(1), bad)
     with pytest.warns(ScanWarning, match="no LiDAR points"):
         p = odo.step(seq.image(2), np.zeros((0, 4), np.float32))
+    with pytest.warns(ScanWarning, match=r"integer coordinates \(int32\)"):  # whole metres: said, then used
+        odo.step(seq.image(3), seq.scan(3).astype(np.int32))
     assert np.all(np.isfinite(p))
     with pytest.raises(D3LVOInputError, match="earlier frames were 620x188"):
-        odo.step(np.zeros((100, 200, 3), np.uint8), seq.scan(3))
+        odo.step(np.zeros((100, 200, 3), np.uint8), seq.scan(4))
 
 
 def test_nan_reflectance_is_read_as_zero(small_model, small_synth):
