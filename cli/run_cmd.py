@@ -230,9 +230,9 @@ def _open_recording(path, fmt, seq_dir, kitti_root, sequence, calib, gt, image_t
             raise D3LVOInputError(kitti_root, "--kitti-root needs --sequence (e.g. 09)")
         seq = KittiSequence.from_kitti_root(kitti_root, sequence)
         return KittiSequence.open(seq.root, gt=gt) if gt is not None else seq
-    if not (max_dt > 0 and math.isfinite(max_dt)):  # else reported as images that never pair
-        raise D3LVOInputError(None, f"--max-dt must be a time above 0 s (the most an image and its scan may be "
-                                    f"apart), not {max_dt}")
+    if not (max_dt >= 0 and math.isfinite(max_dt)):  # else reported as images that never pair
+        raise D3LVOInputError(None, f"--max-dt must be a time of 0 s or more (the most an image and its scan may "
+                                    f"be apart; 0: equal stamps), not {max_dt}")
     bag = BagOptions(image_topic=image_topic, cloud_topic=cloud_topic, info_topic=info_topic, max_dt=max_dt)
     return open_sequence(path if path is not None else seq_dir, fmt, gt=gt, calib=calib, bag=bag)
 

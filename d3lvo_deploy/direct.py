@@ -435,8 +435,9 @@ class DirectOdometry:
               previous_stamp: float | None = None) -> None:
         pose = rigid_pose(pose, "prime's pose")
         previous_pose = None if previous_pose is None else rigid_pose(previous_pose, "prime's previous_pose")
+        stamp, previous_stamp = as_stamp(stamp, "prime's stamp"), as_stamp(previous_stamp, "prime's previous_stamp")
         self._prev = self._frame(image, points)
-        self._prev_stamp = None if stamp is None else float(stamp)
+        self._prev_stamp = stamp
         self.pose = pose
         # without the pose before, no motion: the next pair starts from the cold start's guesses
         self.cold, self.motion2, self.relative = True, np.eye(4), np.eye(4)

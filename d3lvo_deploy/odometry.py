@@ -121,8 +121,8 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
     the image alone (documented fallback), with a warning."""
     if points is None:
         points = np.zeros((0, 4), np.float32)
-    kind = getattr(points, "dtype", np.dtype(np.float32)).kind
-    if kind in "USOb" and len(points):  # text read as numbers, or booleans: not a scan
+    kind = getattr(points, "dtype", np.dtype(np.float32)).kind if np.ndim(points) else "f"  # 0-d: the shape check
+    if kind in "USb" and len(points):  # text read as numbers, or booleans: not a scan
         raise D3LVOInputError(None, f"{source}: points must be a numeric (N,4) array (x, y, z, intensity), "
                                     f"got an array of {points.dtype}")
     if kind in "iu" and len(points):  # whole metres: the solver's points a metre off, where it reads them

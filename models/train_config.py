@@ -13,6 +13,7 @@ is repeated with `--config runs/x.toml`.
 
 from __future__ import annotations
 
+import math
 import typing
 from dataclasses import MISSING, asdict, fields
 from pathlib import Path
@@ -60,10 +61,10 @@ def _check_type(path: Path, table: str, key: str, value, default) -> object:
     return converted(value, default)
 
 
-# values of the right kind that still cannot train, as (lowest, highest, whether the lowest is allowed):
-# a negative grad_clip turns the gradient round (clip_grad_norm_ scales by a negative factor) and
-# trains uphill, a negative loss weight rewards that loss, a probability above 1 is always
-BOUNDS = {("train", "lr"): (0.0, None, False), ("train", "balance_lr"): (0.0, None, False),
+# values of the right kind that still cannot train, as (lowest, highest, whether the lowest is allowed),
+# and never NaN: a negative grad_clip turns the gradient round (clip_grad_norm_ scales by a negative
+# factor) and trains uphill, a negative loss weight rewards that loss, a probability above 1 is 1
+BOUNDS = {("train", "lr"): (0.0, None, False), ("train", "balance_lr"): (0.0, None, True),
           ("train", "grad_clip"): (0.0, None, False), ("train", "weight_decay"): (0.0, None, True),
           ("train", "warmup"): (0, None, True),
           ("augment", "flip"): (0.0, 1.0, True), ("augment", "cold_start"): (0.0, 1.0, True),
@@ -78,7 +79,7 @@ def _check_bounds(path: Path, table: str, key: str, value) -> None:
     if low is None or value is None:
         return
     for v in value if isinstance(value, (tuple, list)) else [value]:
-        if (v < low if closed else v <= low) or (high is not None and v > high):
+        if not math.isfinite(v) or (v < low if closed else v <= low) or (high is not None and v > high):
             span = f"from {low:g} to {high:g}" if high is not None else f"{'at least' if closed else 'above'} {low:g}"
             given = f"{list(value)}: each value" if isinstance(value, (tuple, list)) else f"{value!r}"
             raise D3LVOInputError(path, f"[{table}] {key} = {given} must be {span}")

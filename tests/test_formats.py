@@ -387,7 +387,7 @@ def test_resume_continues_only_the_run_its_config_records(tmp_path, monkeypatch)
     (["--out", "p.txt", "--image-topic", "/cam", "--max-dt", "0.1"],
      "--image-topic, --max-dt are for ROS bags; this is a kitti recording"),
     (["--out", "p.txt", "--gt", "nowhere.txt"], "nowhere.txt: pose file not found"),
-    (["--out", "p.txt", "--max-dt", "-1"], "--max-dt must be a time above 0 s"),
+    (["--out", "p.txt", "--max-dt", "-1"], "--max-dt must be a time of 0 s or more"),
     (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data")], "data: is a folder; a pose file was expected"),
     (["--out", "p.txt", "--gt", str(ROOT / "tests" / "data" / "tiny_seq" / "times.txt")],
      "1 columns per line: expected 12 (KITTI)"),
