@@ -27,7 +27,7 @@ from .geometry import change_frame, is_rigid, relative
 from .motion_guard import MotionGuard, guard_motion, scaled_motion
 from .onnx_model import BESIDE_STAGE, SessionConfig, StageModel, camera_inputs
 from .points import (CLASSICAL_INPUT, CLASSICAL_NEXT_OUTPUT, CLASSICAL_START_INPUT, SCAN_DEPTH_INPUT, SolverFrame,
-                     finest_level, point_config, solver_feeds, textured_points)
+                     finest_level, in_depth_range, point_config, solver_feeds, textured_points)
 from .projection import PROJECTION_MIN_DEPTH, rows_in_view, sparse_depth
 from .selection import SELECT_KEPT_OUTPUT, held_pose
 
@@ -121,7 +121,7 @@ def clean_scan(points: np.ndarray | None, source: str = "scan") -> np.ndarray:
     the image alone (documented fallback), with a warning."""
     if points is None:
         points = np.zeros((0, 4), np.float32)
-    kind = getattr(points, "dtype", np.dtype(np.float32)).kind if np.ndim(points) else "f"  # 0-d: the shape check
+    kind = points.dtype.kind if isinstance(points, np.ndarray) and points.ndim else "f"  # else: the checks below
     if kind in "USb" and len(points):  # text read as numbers, or booleans: not a scan
         raise D3LVOInputError(None, f"{source}: points must be a numeric (N,4) array (x, y, z, intensity), "
                                     f"got an array of {points.dtype}")
@@ -169,8 +169,6 @@ def check_texture(textured: np.ndarray, in_view: np.ndarray | None, cfg, T_cam_v
     write without a word. `cfg`: the solver's `PointConfig`."""
     if len(textured) or in_view is None or len(in_view) < BLANK_IMAGE_RETURNS:
         return
-    from .points import in_depth_range
-
     near = len(in_depth_range(in_view, T_cam_velo, cfg.min_depth, cfg.max_depth))
     if near < BLANK_IMAGE_RETURNS:
         warnings.warn(f"{source}: {near} of its {len(in_view)} returns in and around the view lie within "
@@ -178,10 +176,9 @@ def check_texture(textured: np.ndarray, in_view: np.ndarray | None, cfg, T_cam_v
                       "with this frame keep their starting motion (the last pair's; none on the first)", ScanWarning,
                       stacklevel=4)
     else:
-        min_gradient = cfg.min_gradient
         image = source.removesuffix("'s scan") + "'s image" if source.endswith("'s scan") else "image"
         warnings.warn(f"{image}: no texture where the scan's {near} returns in and around it land (grey gradient "
-                      f"above {min_gradient:g}): black, blank or overexposed? The pairs with this frame keep their "
+                      f"above {cfg.min_gradient:g}): black, blank or overexposed? The pairs with this frame keep their "
                       "starting motion (the last pair's; none on the first)", ScanWarning, stacklevel=4)
 
 
